@@ -1,0 +1,1 @@
+"""medseg evaluation stage (command-line entry point in `cli.py`)."""

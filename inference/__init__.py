@@ -1,0 +1,1 @@
+"""medseg inference stage (command-line entry point in `cli.py`)."""

@@ -1,0 +1,39 @@
+"""Shared plumbing for the command-line tools: one-line errors, exit codes, progress."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Callable, Sequence
+
+from medseg.errors import MedsegError
+
+EXIT_OK = 0
+EXIT_FAILURE = 1  # the run went through but some items failed (e.g. one file of a batch)
+EXIT_USAGE = 2  # bad input: nothing was done
+
+
+def run_cli(
+    body: Callable[[argparse.Namespace], int],
+    parser: argparse.ArgumentParser,
+    argv: Sequence[str] | None,
+) -> int:
+    """Parse ``argv`` and run ``body``; a :class:`MedsegError` becomes one line on stderr.
+
+    ``KeyboardInterrupt`` also ends in one line and exit code 130. Any other exception is a
+    bug in medseg and keeps its traceback.
+    """
+    args = parser.parse_args(argv)
+    try:
+        return int(body(args))
+    except MedsegError as exc:
+        print(f"{parser.prog}: error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    except KeyboardInterrupt:
+        print(f"{parser.prog}: interrupted", file=sys.stderr)
+        return 130
+
+
+def show_progress(quiet: bool = False) -> bool:
+    """Whether tqdm progress bars should be shown: on a terminal and not ``--quiet``."""
+    return (not quiet) and sys.stderr.isatty()

@@ -1,0 +1,1 @@
+"""medseg training stage (command-line entry point in `cli.py`)."""
