@@ -1,6 +1,14 @@
 """Images, landmark files and atomic writes.
 
-Conventions (see ``docs/conventions.md`` in the design notes):
+* Images: :func:`read_image` / :func:`write_image` for NIfTI (``.nii``, ``.nii.gz``), NRRD,
+  MetaImage (``.mha``, ``.mhd``) and DICOM series folders, through SimpleITK; nibabel images
+  are accepted everywhere and given back with :func:`to_nibabel` / :func:`as_input_type`.
+  Label maps: :func:`read_label`, :func:`select_labels`, :func:`resample_like`.
+* Landmarks: :func:`read_landmarks` / :func:`write_landmarks` (CSV, Slicer ``.fcsv`` and
+  ``.mrk.json``).
+* Every write goes through :func:`atomic_write`.
+
+Conventions (see the design notes):
 
 * Points (landmarks, surface vertices) are float arrays of shape ``(N, 3)`` in physical
   millimetres, ``(x, y, z)`` order, in the image's world frame (ITK / LPS).
@@ -14,10 +22,42 @@ import numpy as np
 import SimpleITK as sitk
 from numpy.typing import ArrayLike
 
+from medseg._io_atomic import atomic_write, check_not_protected
+from medseg._io_images import (
+    IMAGE_SUFFIXES,
+    as_input_type,
+    check_image,
+    check_same_geometry,
+    image_suffix,
+    read_image,
+    read_label,
+    resample_like,
+    select_labels,
+    to_nibabel,
+    write_image,
+)
+from medseg._io_landmarks import LANDMARK_SUFFIXES, read_landmarks, write_landmarks
+
 __all__ = [
     "voxel_to_physical",
     "physical_to_voxel",
     "image_geometry",
+    "IMAGE_SUFFIXES",
+    "LANDMARK_SUFFIXES",
+    "image_suffix",
+    "read_image",
+    "read_label",
+    "select_labels",
+    "resample_like",
+    "check_image",
+    "check_same_geometry",
+    "to_nibabel",
+    "as_input_type",
+    "write_image",
+    "read_landmarks",
+    "write_landmarks",
+    "atomic_write",
+    "check_not_protected",
 ]
 
 
