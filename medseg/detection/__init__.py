@@ -1,0 +1,25 @@
+"""Landmark candidate detection: pose-invariant features, Random Forests, candidate sets.
+
+The singleton evidence of the shape MRF, ``U_i(x_i) = -log p(I | x_i)``, and the candidate
+positions ``X_i`` of each landmark (Wang et al., MICCAI 2010).
+"""
+
+from medseg.detection._candidates import CandidateSet, non_maximum_suppression, subvoxel_peak
+from medseg.detection._detector import LandmarkDetector
+from medseg.detection._features import FeatureSettings, compute_features, feature_names
+from medseg.detection._persistence import load_detector, save_detector
+from medseg.detection._sampling import LandmarkSamples, sample_landmark_voxels
+
+__all__ = [
+    "CandidateSet",
+    "FeatureSettings",
+    "LandmarkDetector",
+    "LandmarkSamples",
+    "compute_features",
+    "feature_names",
+    "load_detector",
+    "non_maximum_suppression",
+    "sample_landmark_voxels",
+    "save_detector",
+    "subvoxel_peak",
+]

@@ -1,0 +1,160 @@
+"""Saving and loading landmark detectors: skops for the forests, JSON for everything else.
+
+A saved detector is a folder::
+
+    detector.json    format name and version, constructor parameters, feature settings,
+                     fitted metadata (number of landmarks, feature names, ...)
+    forests.skops    the list of scikit-learn forests (skops format: no pickle)
+
+The folder is written next to its destination and renamed into place, so a failed save never
+leaves a half-written detector.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import skops.io as sio
+
+from medseg.detection._features import FeatureSettings, feature_names
+from medseg.errors import InputFileError, MedsegError, ModelFileError, NotFittedError
+
+__all__ = ["save_detector", "load_detector", "FORMAT_NAME", "FORMAT_VERSION"]
+
+FORMAT_NAME = "medseg.detection.LandmarkDetector"
+FORMAT_VERSION = 1
+_META = "detector.json"
+_FORESTS = "forests.skops"
+# Types a detector's skops file may hold; anything else means a tampered or foreign file.
+_TRUSTED_PREFIXES = ("sklearn.tree.", "sklearn.ensemble.", "numpy.", "builtins.")
+
+
+def save_detector(detector, path) -> Path:
+    """Write a fitted :class:`LandmarkDetector` to the folder ``path``.
+
+    Parameters
+    ----------
+    detector : LandmarkDetector
+        Fitted.
+    path : str or Path
+        Folder to create. An existing folder is replaced only if it holds a saved detector.
+
+    Returns
+    -------
+    path : Path
+    """
+    if not hasattr(detector, "forests_"):
+        raise NotFittedError("save: the detector is not fitted; call fit() before save()")
+    path = Path(path)
+    if path.exists() and not (path.is_dir() and (path / _META).is_file()):
+        raise InputFileError(
+            f"save: {path} exists and is not a saved detector; choose another path so "
+            "nothing is overwritten"
+        )
+    params = detector.get_params()
+    params["features"] = params["features"].to_dict()
+    params["random_state"] = (
+        params["random_state"] if isinstance(params["random_state"], int | None) else None
+    )
+    meta = {
+        "format": FORMAT_NAME,
+        "version": FORMAT_VERSION,
+        "params": params,
+        "fitted": {
+            "n_landmarks": detector.n_landmarks_,
+            "n_features": detector.n_features_,
+            "feature_names": detector.feature_names_,
+            "n_dims": detector.n_dims_,
+            "n_samples": np.asarray(detector.n_samples_).tolist(),
+            "fit_time_s": float(detector.fit_time_),
+        },
+    }
+    parent = path.parent if str(path.parent) else Path(".")
+    parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=parent))
+    try:
+        sio.dump(list(detector.forests_), tmp / _FORESTS)
+        (tmp / _META).write_text(json.dumps(meta, indent=2, sort_keys=True))
+        if path.exists():
+            old = Path(tempfile.mkdtemp(prefix=f".{path.name}.old.", dir=parent))
+            os.replace(path, old / path.name)
+            os.replace(tmp, path)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+    return path
+
+
+def load_detector(path):
+    """Read a detector written by :func:`save_detector`.
+
+    Raises
+    ------
+    InputFileError
+        If ``path`` is not a folder holding ``detector.json`` and ``forests.skops``.
+    ModelFileError
+        If the files are corrupt, of another format or version, or hold unexpected types.
+    """
+    from medseg.detection._detector import LandmarkDetector
+
+    path = Path(path)
+    if not (path / _META).is_file() or not (path / _FORESTS).is_file():
+        raise InputFileError(
+            f"load: {path} is not a saved detector folder (needs {_META} and {_FORESTS}); "
+            "give the folder written by LandmarkDetector.save"
+        )
+    try:
+        meta = json.loads((path / _META).read_text())
+        if meta.get("format") != FORMAT_NAME:
+            raise ModelFileError(f"load: {path / _META} is not a {FORMAT_NAME} file")
+        if int(meta.get("version", -1)) > FORMAT_VERSION:
+            raise ModelFileError(
+                f"load: {path} was written in format version {meta['version']}, newer than "
+                f"this medseg reads ({FORMAT_VERSION}); upgrade medseg"
+            )
+        params = dict(meta["params"])
+        params["features"] = FeatureSettings.from_dict(params["features"])
+        fitted = meta["fitted"]
+    except ModelFileError:
+        raise
+    except (ValueError, KeyError, TypeError, MedsegError) as exc:
+        raise ModelFileError(f"load: {path / _META} is corrupt or incomplete ({exc})") from exc
+    try:
+        untrusted = sio.get_untrusted_types(file=path / _FORESTS)
+    except Exception as exc:  # skops raises various errors on a corrupt zip
+        raise ModelFileError(f"load: {path / _FORESTS} is corrupt ({exc})") from exc
+    foreign = [t for t in untrusted if not t.startswith(_TRUSTED_PREFIXES)]
+    if foreign:
+        raise ModelFileError(
+            f"load: {path / _FORESTS} holds unexpected types {foreign}; refusing to load a "
+            "file that may have been tampered with"
+        )
+    try:
+        forests = sio.load(path / _FORESTS, trusted=untrusted)
+    except Exception as exc:
+        raise ModelFileError(f"load: {path / _FORESTS} is corrupt ({exc})") from exc
+    detector = LandmarkDetector(**params)
+    detector.forests_ = list(forests)
+    detector.n_landmarks_ = int(fitted["n_landmarks"])
+    detector.n_features_ = int(fitted["n_features"])
+    detector.feature_names_ = list(fitted["feature_names"])
+    detector.n_dims_ = int(fitted["n_dims"])
+    detector.n_samples_ = np.asarray(fitted["n_samples"], dtype=int)
+    detector.fit_time_ = float(fitted["fit_time_s"])
+    expected = len(detector.forests_) == (
+        detector.n_landmarks_ if detector.mode == "per_landmark" else 1
+    )
+    if not expected or detector.feature_names_ != feature_names(detector.features):
+        raise ModelFileError(
+            f"load: {path} is inconsistent (forest count or feature names do not match the "
+            "settings); the folder was modified after saving"
+        )
+    return detector
