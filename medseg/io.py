@@ -34,6 +34,7 @@ from medseg._io_images import (
     resample_like,
     select_labels,
     to_nibabel,
+    write_dicom_series,
     write_image,
 )
 from medseg._io_landmarks import LANDMARK_SUFFIXES, read_landmarks, write_landmarks
@@ -54,6 +55,7 @@ __all__ = [
     "to_nibabel",
     "as_input_type",
     "write_image",
+    "write_dicom_series",
     "read_landmarks",
     "write_landmarks",
     "atomic_write",

@@ -580,3 +580,49 @@ def test_write_like_checks_output_geometry(tmp_path):
     assert listing(tmp_path) == []
     mio.write_image(image, tmp_path / "o.nii.gz", like=image)
     assert os.path.getsize(tmp_path / "o.nii.gz") > 0
+
+
+# --------------------------------------------------------------------------- DICOM
+
+
+@pytest.mark.parametrize("dtype", [np.int16, np.uint16, np.uint8])
+def test_dicom_series_round_trip(tmp_path, dtype):
+    image = make_image(dtype=dtype)
+    folder = mio.write_dicom_series(image, tmp_path / "series")
+    assert len(listing(folder)) == image.GetSize()[2]
+    assert listing(tmp_path) == ["series"]
+    back = mio.read_image(folder)
+    assert_same_geometry(back, image)
+    assert back.GetPixelID() == image.GetPixelID()
+    np.testing.assert_array_equal(
+        sitk.GetArrayViewFromImage(back), sitk.GetArrayViewFromImage(image)
+    )
+
+
+def test_dicom_series_errors(tmp_path):
+    with pytest.raises(ImageFormatError, match="int16"):
+        mio.write_dicom_series(make_image(), tmp_path / "f")
+    with pytest.raises(ImageGeometryError, match="left-handed"):
+        mio.write_dicom_series(make_image(dtype=np.int16, mirror=True), tmp_path / "m")
+    (tmp_path / "busy").mkdir()
+    (tmp_path / "busy" / "keep.txt").write_text("x")
+    with pytest.raises(InputFileError, match="busy"):
+        mio.write_dicom_series(make_image(dtype=np.int16), tmp_path / "busy")
+    assert listing(tmp_path) == ["busy"]
+    with pytest.raises(ImageFormatError, match="busy.*no DICOM series"):
+        mio.read_image(tmp_path / "busy")
+    # two series in one folder: the caller must choose
+    mio.write_dicom_series(make_image(dtype=np.int16, seed=1), tmp_path / "a")
+    mio.write_dicom_series(make_image(dtype=np.int16, seed=2), tmp_path / "b")
+    mixed = tmp_path / "mixed"
+    mixed.mkdir()
+    for sub in ("a", "b"):
+        for f in (tmp_path / sub).iterdir():
+            os.link(f, mixed / f"{sub}_{f.name}")
+    with pytest.raises(ImageFormatError, match="2 DICOM series"):
+        mio.read_image(mixed)
+    one = sitk.ImageSeriesReader.GetGDCMSeriesIDs(str(mixed))[0]
+    assert mio.read_image(mixed, series_id=one).GetSize() == (7, 9, 11)
+    # a single slice file is not a volume
+    with pytest.raises(ImageGeometryError, match="slice_0000.dcm.*slice"):
+        mio.read_image(tmp_path / "a" / "slice_0000.dcm")
