@@ -98,6 +98,22 @@ def _is_nibabel(obj: Any) -> bool:
     return isinstance(obj, nib.spatialimages.SpatialImage)
 
 
+def _check_direction(direction: np.ndarray, name: str) -> None:
+    """Raise ImageGeometryError unless ``direction`` is a finite, orthonormal 3x3 matrix."""
+    if not np.all(np.isfinite(direction)) or abs(np.linalg.det(direction)) < 1e-6:
+        raise ImageGeometryError(
+            f"{name}: direction matrix {tuple(direction.ravel())} is singular or not finite; "
+            "fix the image header (orientation)"
+        )
+    skew = np.abs(direction.T @ direction - np.eye(3)).max()
+    if skew > 1e-4:
+        raise ImageGeometryError(
+            f"{name}: voxel axes are not perpendicular (sheared affine, |D^T D - I| = "
+            f"{skew:.2g}); ITK would silently change this geometry. Resample the image onto "
+            "an orthogonal grid first (e.g. nibabel.processing.resample_from_to)"
+        )
+
+
 def check_image(image: sitk.Image, *, name: str = "image") -> sitk.Image:
     """Check that ``image`` is a usable 3D scalar image; return it unchanged.
 
@@ -105,7 +121,8 @@ def check_image(image: sitk.Image, *, name: str = "image") -> sitk.Image:
     ------
     ImageGeometryError
         Not 3D, more than one component per voxel, a single slice, non-positive or
-        non-finite spacing, a singular or non-finite direction, non-finite origin or voxels.
+        non-finite spacing, a singular, sheared or non-finite direction, non-finite origin
+        or voxels.
     """
     dim = image.GetDimension()
     if dim != 3:
@@ -133,12 +150,7 @@ def check_image(image: sitk.Image, *, name: str = "image") -> sitk.Image:
         )
     if not np.all(np.isfinite(image.GetOrigin())):
         raise ImageGeometryError(f"{name}: origin {image.GetOrigin()} is not finite")
-    direction = np.asarray(image.GetDirection(), dtype=float).reshape(3, 3)
-    if not np.all(np.isfinite(direction)) or abs(np.linalg.det(direction)) < 1e-6:
-        raise ImageGeometryError(
-            f"{name}: direction matrix {tuple(direction.ravel())} is singular or not finite; "
-            "fix the image header (orientation)"
-        )
+    _check_direction(np.asarray(image.GetDirection(), dtype=float).reshape(3, 3), name)
     if image.GetPixelID() in _FLOAT_PIXELS:
         values = sitk.GetArrayViewFromImage(image)
         finite = np.isfinite(values)
@@ -182,8 +194,7 @@ def _from_nibabel(img: nib.spatialimages.SpatialImage, name: str) -> sitk.Image:
             f"{name}: affine gives voxel spacing {tuple(spacing)}; spacing must be positive"
         )
     direction = linear / spacing
-    if abs(np.linalg.det(direction)) < 1e-6:
-        raise ImageGeometryError(f"{name}: affine is singular:\n{affine}")
+    _check_direction(direction, name)
     image = sitk.GetImageFromArray(np.ascontiguousarray(data.transpose(2, 1, 0)), isVector=False)
     try:
         image.SetSpacing(tuple(float(s) for s in spacing))
@@ -374,8 +385,8 @@ def read_image(source: Any, *, series_id: str | None = None, name: str | None = 
     ImageFormatError
         Unknown suffix; corrupt or truncated file; folder without a DICOM series.
     ImageGeometryError
-        Not 3D (2D, 4D), vector/RGB voxels, non-positive spacing, singular direction,
-        non-finite voxels.
+        Not 3D (2D, 4D), vector/RGB voxels, non-positive spacing, singular or sheared
+        direction, non-finite voxels.
     """
     label = _describe(source, name)
     if isinstance(source, sitk.Image):

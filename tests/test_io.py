@@ -454,6 +454,18 @@ def test_zero_spacing_or_singular_affine_from_nibabel(column):
         mio.read_image(nimg, name="flat.nii")
 
 
+def test_sheared_affine_is_refused_not_silently_changed(tmp_path):
+    affine = np.diag([1.0, 2.0, 3.0, 1.0])
+    affine[0, 1] = 0.5  # second voxel axis not perpendicular to the first
+    nimg = nib.Nifti1Image(np.ones((4, 5, 6), np.float32), affine)
+    with pytest.raises(ImageGeometryError, match="shear.nii.*perpendicular"):
+        mio.read_image(nimg, name="shear.nii")
+    image = sitk.Image([4, 5, 6], sitk.sitkFloat32)
+    image.SetDirection((1.0, 0.3, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0))
+    with pytest.raises(ImageGeometryError, match="perpendicular"):
+        mio.read_image(image)
+
+
 def test_label_geometry_mismatch_and_tolerance(tmp_path):
     image = make_image()
     label = sitk.Cast(image > 0, sitk.sitkUInt8)
