@@ -1,0 +1,419 @@
+"""Tests of medseg.detection: features, sampling, forests, candidates, persistence.
+
+Small generated images: an asymmetric blob (ellipsoid plus a bump) in a random pose, with
+landmarks at known points of its surface.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+from scipy import ndimage
+from scipy.spatial.transform import Rotation
+
+from medseg.detection import (
+    CandidateSet,
+    FeatureSettings,
+    LandmarkDetector,
+    compute_features,
+    feature_names,
+    non_maximum_suppression,
+    sample_landmark_voxels,
+)
+from medseg.detection._features import _sym3_eigvals
+from medseg.errors import (
+    ImageGeometryError,
+    InputFileError,
+    LabelError,
+    MedsegError,
+    ModelFileError,
+    NotFittedError,
+)
+from medseg.io import physical_to_voxel, voxel_to_physical
+
+RADII = np.array([10.0, 6.5, 5.0])
+BUMP = np.array([7.0, 4.5, 0.0])
+
+
+def _canonical_landmarks() -> np.ndarray:
+    dirs = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], float)
+    pts = dirs * RADII
+    bump_tip = BUMP + 4.0 * np.array([0.6, 0.8, 0.0])
+    return np.vstack([pts, bump_tip])
+
+
+def make_blob(
+    rng: np.random.Generator,
+    *,
+    size=(36, 36, 36),
+    spacing=(1.0, 1.0, 1.0),
+    direction=None,
+    rotate=True,
+):
+    """A blob image in a random pose (and intensity scale) and its 7 landmarks (mm)."""
+    ref = sitk.Image([int(s) for s in size[::-1]], sitk.sitkFloat32)
+    ref.SetSpacing([float(s) for s in spacing])
+    if direction is not None:
+        ref.SetDirection([float(v) for v in np.asarray(direction).ravel()])
+    centre_vox = (np.asarray(size, float) - 1) / 2
+    centre = voxel_to_physical(ref, centre_vox) + rng.uniform(-1.5, 1.5, 3)
+    rot = Rotation.random(random_state=rng).as_matrix() if rotate else np.eye(3)
+    zyx = np.stack(np.meshgrid(*[np.arange(s) for s in size], indexing="ij"), -1).reshape(-1, 3)
+    local = (voxel_to_physical(ref, zyx) - centre) @ rot
+    inside = (((local / RADII) ** 2).sum(1) <= 1) | (np.linalg.norm(local - BUMP, axis=1) <= 4.0)
+    scale = rng.uniform(50, 300)
+    arr = np.where(inside, 1.0, 0.25).reshape(size) * scale
+    arr = ndimage.gaussian_filter(arr, 0.6) + rng.normal(0, 0.04 * scale, size)
+    image = sitk.GetImageFromArray(arr.astype(np.float32))
+    image.CopyInformation(ref)
+    return image, _canonical_landmarks() @ rot.T + centre
+
+
+@pytest.fixture(scope="module")
+def blobs():
+    rng = np.random.default_rng(7)
+    return [make_blob(rng) for _ in range(9)]
+
+
+@pytest.fixture(scope="module")
+def small_settings():
+    return FeatureSettings(scales_mm=(1.0, 2.0, 4.0), shell_radii_mm=(3.0, 6.0))
+
+
+@pytest.fixture(scope="module")
+def fitted(blobs, small_settings):
+    det = LandmarkDetector(
+        features=small_settings, n_estimators=12, n_negative=150, random_state=0, n_jobs=2
+    )
+    return det.fit([b[0] for b in blobs[:6]], [b[1] for b in blobs[:6]])
+
+
+# ----------------------------------------------------------------------------- features
+def test_sym3_eigvals_match_numpy():
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=(500, 3, 3))
+    a = a + a.transpose(0, 2, 1)
+    a[:10] = np.diag([2.0, 2.0, 2.0])  # repeated eigenvalues
+    out = np.empty((500, 3))
+    _sym3_eigvals(a[:, 0, 0], a[:, 0, 1], a[:, 0, 2], a[:, 1, 1], a[:, 1, 2], a[:, 2, 2], out)
+    np.testing.assert_allclose(out, np.linalg.eigvalsh(a), atol=1e-9)
+
+
+def test_features_shape_and_names(small_settings):
+    image, _ = make_blob(np.random.default_rng(1), size=(20, 24, 28))
+    feats = compute_features(image, small_settings)
+    names = feature_names(small_settings)
+    assert feats.shape == (20, 24, 28, len(names)) and feats.dtype == np.float32
+    assert len(set(names)) == len(names)
+    assert np.isfinite(feats).all()
+
+
+def test_features_invariant_to_rotation_of_the_grid(small_settings):
+    """A 90-degree rotation of the voxel grid permutes the voxels, not the feature values."""
+    image, _ = make_blob(np.random.default_rng(2), size=(26, 26, 26))
+    arr = sitk.GetArrayFromImage(image)
+    rotated = sitk.GetImageFromArray(np.ascontiguousarray(np.rot90(arr, k=1, axes=(0, 2))))
+    f0 = compute_features(image, small_settings)
+    f1 = compute_features(rotated, small_settings)
+    np.testing.assert_allclose(np.rot90(f0, k=1, axes=(0, 2)), f1, rtol=1e-4, atol=1e-4)
+
+
+def test_features_invariant_to_intensity_scaling(small_settings):
+    image, _ = make_blob(np.random.default_rng(3), size=(20, 20, 20))
+    scaled = image * 3.7 + 120.0
+    np.testing.assert_allclose(
+        compute_features(image, small_settings),
+        compute_features(scaled, small_settings),
+        rtol=1e-3,
+        atol=1e-3,
+    )
+
+
+def test_features_use_mm_scales_on_anisotropic_images():
+    """The same smooth scene sampled at 1 mm and at 2 mm along z gives the same features."""
+    settings = FeatureSettings(
+        scales_mm=(3.0,), kinds=("smoothed", "gradient"), normalisation="none"
+    )
+
+    def scene(spacing_z):
+        n_z = int(round(40 / spacing_z))
+        ref = sitk.Image([40, 40, n_z], sitk.sitkFloat32)
+        ref.SetSpacing((1.0, 1.0, spacing_z))
+        zyx = np.stack(
+            np.meshgrid(*[np.arange(n_z), np.arange(40), np.arange(40)], indexing="ij"), -1
+        ).reshape(-1, 3)
+        pts = voxel_to_physical(ref, zyx)
+        arr = np.exp(-np.sum((pts - [20.0, 20.0, 20.0]) ** 2, axis=1) / (2 * 6.0**2))
+        image = sitk.GetImageFromArray(arr.reshape(n_z, 40, 40).astype(np.float32))
+        image.CopyInformation(ref)
+        return image
+
+    iso, aniso = scene(1.0), scene(2.0)
+    f_iso, f_aniso = compute_features(iso, settings), compute_features(aniso, settings)
+    # Compare at physical points shared by both grids, away from the borders.
+    for z_iso in (14, 20, 26):
+        z_an = z_iso // 2
+        a = f_iso[z_iso, 10:30, 10:30]
+        b = f_aniso[z_an, 10:30, 10:30]
+        np.testing.assert_allclose(b, a, rtol=0.05, atol=0.01 * np.abs(a).max())
+
+
+def test_n4_option_gives_finite_features():
+    image, _ = make_blob(np.random.default_rng(4), size=(24, 24, 24))
+    settings = FeatureSettings(scales_mm=(2.0,), shell_radii_mm=(4.0,), n4=True)
+    feats = compute_features(image, settings)
+    assert np.isfinite(feats).all()
+
+
+def test_feature_settings_json_roundtrip_and_validation():
+    s = FeatureSettings(scales_mm=(1.5, 3.0), kinds=("smoothed", "hessian"), n4=True)
+    again = FeatureSettings.from_dict(json.loads(json.dumps(s.to_dict())))
+    assert again == s
+    with pytest.raises(MedsegError, match="unknown feature kind"):
+        FeatureSettings(kinds=("smoothed", "sift"))
+    with pytest.raises(MedsegError, match="scales_mm"):
+        FeatureSettings(scales_mm=(0.0,))
+    with pytest.raises(MedsegError, match="newer medseg"):
+        FeatureSettings.from_dict({**s.to_dict(), "colour": 1})
+
+
+@pytest.mark.parametrize(
+    "image",
+    [
+        sitk.Image([10, 10], sitk.sitkFloat32),
+        sitk.Image([10, 10, 10], sitk.sitkVectorFloat32, 2),
+        sitk.GetImageFromArray(np.full((8, 8, 8), np.nan, dtype=np.float32)),
+    ],
+    ids=["2d", "vector", "nan"],
+)
+def test_features_reject_bad_images(image):
+    with pytest.raises(ImageGeometryError):
+        compute_features(image)
+
+
+# ----------------------------------------------------------------------------- sampling
+def test_sampling_positives_within_radius_and_negatives_outside():
+    rng = np.random.default_rng(5)
+    image, lms = make_blob(rng, spacing=(1.5, 1.0, 0.8))
+    lms[3] = np.nan  # a missing landmark
+    shape = sitk.GetArrayViewFromImage(image).shape
+    samples = sample_landmark_voxels(
+        image,
+        lms,
+        positive_radius_mm=2.0,
+        n_negative=90,
+        max_positive=1000,
+        random_state=np.random.RandomState(0),
+    )
+    for i, (pos, neg) in enumerate(zip(samples.positives, samples.negatives, strict=True)):
+        if i == 3:
+            assert pos.size == 0 and neg.size == 0
+            continue
+        p_mm = voxel_to_physical(image, np.stack(np.unravel_index(pos, shape), -1))
+        n_mm = voxel_to_physical(image, np.stack(np.unravel_index(neg, shape), -1))
+        assert np.all(np.linalg.norm(p_mm - lms[i], axis=1) <= 2.0 + 1e-9)
+        assert np.all(np.linalg.norm(n_mm - lms[i], axis=1) > 2.0)
+        assert pos.size >= 3 and neg.size == 90
+        # a third of the negatives sit near the other landmarks (hard negatives)
+        others = np.delete(lms, [i, 3], axis=0)
+        near = np.linalg.norm(n_mm[:, None] - others[None], axis=-1).min(1) <= 8.0
+        assert near.sum() >= 30
+
+
+# ----------------------------------------------------------------------------- detector
+def _recall_and_error(det, cases, **kwargs):
+    hits, errors = [], []
+    for image, lms in cases:
+        cs = det.candidates(image, n_candidates=20, **kwargs)
+        spacing = max(image.GetSpacing())
+        hits.append(cs.recall(lms, radius_mm=2.0 * spacing))
+        errors.append(cs.distances(lms)[:, 0])
+    return float(np.mean(hits)), float(np.median(errors))
+
+
+def test_detector_finds_landmarks_in_unseen_poses(fitted, blobs):
+    recall, top1 = _recall_and_error(fitted, blobs[6:])
+    assert recall >= 0.9
+    assert top1 < 3.0  # mm; 1 mm voxels
+
+
+def test_detector_works_on_oblique_anisotropic_image(fitted):
+    """Trained on axis-aligned 1 mm images, tested on an oblique 1.3 x 1 x 0.9 mm grid."""
+    direction = Rotation.from_euler("xyz", [20, -15, 35], degrees=True).as_matrix()
+    rng = np.random.default_rng(11)
+    cases = [make_blob(rng, size=(30, 36, 40), spacing=(0.9, 1.0, 1.3), direction=direction)]
+    cases.append(make_blob(rng, size=(30, 36, 40), spacing=(0.9, 1.0, 1.3), direction=direction))
+    hits = []
+    for image, lms in cases:
+        cs = fitted.candidates(image, n_candidates=20)
+        hits.append(cs.recall(lms, radius_mm=2.6))
+        np.testing.assert_allclose(
+            physical_to_voxel(image, cs.positions.reshape(-1, 3)),
+            cs.voxels.reshape(-1, 3),
+            atol=1e-9,
+        )
+    assert np.mean(hits) >= 0.85
+
+
+def test_multiclass_mode(blobs, small_settings):
+    det = LandmarkDetector(
+        features=small_settings,
+        mode="multiclass",
+        n_estimators=12,
+        n_negative=150,
+        random_state=0,
+        n_jobs=2,
+    ).fit([b[0] for b in blobs[:6]], [b[1] for b in blobs[:6]])
+    assert len(det.forests_) == 1
+    recall, _ = _recall_and_error(det, blobs[6:])
+    assert recall >= 0.85
+
+
+def test_same_seed_same_candidates(blobs, small_settings):
+    kwargs = dict(features=small_settings, n_estimators=4, n_negative=60, random_state=3)
+    train = ([b[0] for b in blobs[:3]], [b[1] for b in blobs[:3]])
+    a = LandmarkDetector(**kwargs).fit(*train).candidates(blobs[8][0], n_candidates=5)
+    b = LandmarkDetector(**kwargs).fit(*train).candidates(blobs[8][0], n_candidates=5)
+    np.testing.assert_array_equal(a.positions, b.positions)
+    np.testing.assert_array_equal(a.probabilities, b.probabilities)
+
+
+def test_candidates_structure_and_min_distance(fitted, blobs):
+    image, _ = blobs[7]
+    cs = fitted.candidates(image, n_candidates=15, min_distance_mm=4.0, stride=1, refine=False)
+    assert cs.positions.shape == (7, 15, 3) and cs.probabilities.shape == (7, 15)
+    assert np.all(np.diff(cs.probabilities, axis=1) <= 0)  # best first
+    for i in range(7):
+        d = np.linalg.norm(cs.positions[i][:, None] - cs.positions[i][None], axis=-1)
+        assert d[np.triu_indices(15, 1)].min() > 4.0
+    u = cs.unaries()
+    np.testing.assert_allclose(u, -np.log(cs.probabilities))
+    assert np.isfinite(u).all() and (u >= 0).all()
+
+
+def test_probability_map_agrees_with_candidates(fitted, blobs):
+    image, _ = blobs[6]
+    maps = fitted.predict_proba_map(image, stride=1)
+    assert maps.shape == (7,) + sitk.GetArrayViewFromImage(image).shape
+    assert np.nanmin(maps) >= 0 and np.nanmax(maps) <= 1
+    cs = fitted.candidates(image, n_candidates=3, stride=1, refine=False)
+    for i in range(7):
+        assert cs.probabilities[i, 0] == pytest.approx(np.nanmax(maps[i]), abs=1e-6)
+    strided = fitted.predict_proba_map(image, stride=3)
+    assert np.isnan(strided[:, 1, :, :]).all() and np.isfinite(strided[:, ::3, ::3, ::3]).all()
+
+
+def test_mask_restricts_the_search(fitted, blobs):
+    image, lms = blobs[6]
+    shape = sitk.GetArrayViewFromImage(image).shape
+    mask = np.zeros(shape, dtype=bool)
+    mask[:, :, : shape[2] // 2] = True
+    cs = fitted.candidates(image, n_candidates=10, mask=mask)
+    assert np.all(np.rint(cs.voxels[..., 2]) < shape[2] // 2)
+    mask_image = sitk.GetImageFromArray(mask.astype(np.uint8))
+    mask_image.CopyInformation(image)
+    cs2 = fitted.candidates(image, n_candidates=10, mask=mask_image)
+    np.testing.assert_array_equal(cs.positions, cs2.positions)
+
+
+def test_constant_image_gives_low_confidence_candidates(fitted):
+    image = sitk.Image([30, 30, 30], sitk.sitkFloat32) + 5.0
+    cs = fitted.candidates(image, n_candidates=20)
+    assert cs.positions.shape == (7, 20, 3)
+    assert np.isfinite(cs.unaries()).all()
+    # distinct positions, and no landmark is confidently found
+    for i in range(7):
+        assert len(np.unique(np.round(cs.positions[i], 3), axis=0)) == 20
+    assert cs.probabilities.max() < 0.5
+
+
+def test_bad_input_errors(fitted, blobs, small_settings):
+    with pytest.raises(NotFittedError, match="not fitted"):
+        LandmarkDetector().candidates(blobs[0][0])
+    with pytest.raises(ImageGeometryError, match="trained on 3D"):
+        fitted.candidates(sitk.Image([20, 20], sitk.sitkFloat32))
+    with pytest.raises(LabelError, match="empty"):
+        fitted.candidates(blobs[0][0], mask=np.zeros((36, 36, 36), bool))
+    with pytest.raises(ImageGeometryError, match="shape"):
+        fitted.candidates(blobs[0][0], mask=np.ones((10, 36, 36), bool))
+    with pytest.raises(MedsegError, match="mode"):
+        LandmarkDetector(mode="joint").fit([blobs[0][0]], [blobs[0][1]])
+    with pytest.raises(MedsegError, match="landmarks"):
+        LandmarkDetector(features=small_settings).fit(
+            [blobs[0][0], blobs[1][0]], [blobs[0][1], blobs[1][1][:3]]
+        )
+
+
+def test_candidate_set_recall_counts_hits():
+    cs = CandidateSet(
+        positions=np.array([[[0, 0, 0], [5, 0, 0]], [[0, 0, 0], [0, 9, 0]]], float),
+        probabilities=np.array([[0.9, 0.1], [0.0, 0.5]]),
+        voxels=np.zeros((2, 2, 3)),
+        floor=1e-3,
+    )
+    ref = np.array([[5.5, 0, 0], [0, 0, 3.0]])
+    np.testing.assert_array_equal(cs.recall(ref, radius_mm=1.0), [1.0, 0.0])
+    np.testing.assert_array_equal(cs.recall(ref, radius_mm=1.0, n=1), [0.0, 0.0])
+    assert cs.unaries()[1, 0] == pytest.approx(-np.log(1e-3))
+
+
+def test_non_maximum_suppression_on_a_flat_map_fills_all_slots():
+    grid = np.stack(np.meshgrid(*[np.arange(6)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    keep = non_maximum_suppression(
+        np.zeros(len(grid)),
+        grid.astype(float),
+        n=10,
+        min_distance_mm=2.5,
+        grid_shape=(6, 6, 6),
+        footprint_vox=[2.5] * 3,
+    )
+    assert len(keep) == 10 and len(np.unique(keep)) == 10
+    d = np.linalg.norm(grid[keep][:, None] - grid[keep][None], axis=-1)
+    assert d[np.triu_indices(10, 1)].min() > 2.5
+
+
+# ----------------------------------------------------------------------------- persistence
+def test_save_load_roundtrip(fitted, blobs, tmp_path):
+    path = tmp_path / "det"
+    fitted.save(path)
+    loaded = LandmarkDetector.load(path)
+    assert loaded.features == fitted.features and loaded.mode == fitted.mode
+    a = fitted.candidates(blobs[7][0], n_candidates=5)
+    b = loaded.candidates(blobs[7][0], n_candidates=5)
+    np.testing.assert_array_equal(a.positions, b.positions)
+    fitted.save(path)  # replacing a saved detector is allowed
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["det"]
+
+
+def test_load_rejects_bad_files(fitted, tmp_path):
+    with pytest.raises(InputFileError, match="not a saved detector"):
+        LandmarkDetector.load(tmp_path)
+    (tmp_path / "notes.txt").write_text("keep me")
+    with pytest.raises(InputFileError, match="overwritten"):
+        fitted.save(tmp_path / "notes.txt")
+    path = tmp_path / "det"
+    fitted.save(path)
+    meta = json.loads((path / "detector.json").read_text())
+    meta["version"] = 99
+    (path / "detector.json").write_text(json.dumps(meta))
+    with pytest.raises(ModelFileError, match="newer"):
+        LandmarkDetector.load(path)
+    fitted.save(path)
+    (path / "forests.skops").write_bytes(b"not a zip file")
+    with pytest.raises(ModelFileError, match="corrupt"):
+        LandmarkDetector.load(path)
+
+
+# ----------------------------------------------------------------------------- real data
+@pytest.mark.data
+def test_features_on_real_hippocampus_image(hippocampus_dir):
+    image = sitk.ReadImage(str(hippocampus_dir / "imagesTr" / "hippocampus_001.nii.gz"))
+    feats = compute_features(image)
+    assert feats.shape[:3] == sitk.GetArrayViewFromImage(image).shape
+    assert np.isfinite(feats).all()
+    # normalised intensity: the 1st / 99th percentiles map to about 0 and 1
+    lo, hi = np.percentile(feats[..., 0], [1, 99])
+    assert lo == pytest.approx(0.0, abs=0.02) and hi == pytest.approx(1.0, abs=0.02)
