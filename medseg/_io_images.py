@@ -33,8 +33,8 @@ __all__ = [
     "check_same_geometry",
 ]
 
-#: File suffixes medseg reads and writes, with the ITK ImageIO that handles each. A folder
-#: is read as a DICOM series.
+#: Image file suffixes medseg reads and writes, with the ITK ImageIO that handles each.
+#: Also read: a folder holding a DICOM series, and single (multi-frame) ``.dcm`` files.
 IMAGE_SUFFIXES: dict[str, str] = {
     ".nii.gz": "NiftiImageIO",
     ".nii": "NiftiImageIO",
@@ -42,9 +42,8 @@ IMAGE_SUFFIXES: dict[str, str] = {
     ".nhdr": "NrrdImageIO",
     ".mha": "MetaImageIO",
     ".mhd": "MetaImageIO",
-    ".dcm": "GDCMImageIO",
 }
-_WRITE_SUFFIXES = (".nii.gz", ".nii", ".nrrd", ".nhdr", ".mha", ".mhd")
+_READ_SUFFIXES = {**IMAGE_SUFFIXES, ".dcm": "GDCMImageIO"}
 _COMPRESSIBLE = (".nrrd", ".nhdr", ".mha", ".mhd")
 
 # nibabel affines map to RAS+ world coordinates, ITK to LPS: flip x and y, once, here.
@@ -65,20 +64,31 @@ _FLOAT_PIXELS = {sitk.sitkFloat32, sitk.sitkFloat64}
 # --------------------------------------------------------------------------- helpers
 
 
-def image_suffix(path: PathLike) -> str:
-    """The image-format suffix of ``path`` (``".nii.gz"`` counts as one), lower case."""
+def image_suffix(path: PathLike) -> str | None:
+    """The image-format suffix of ``path`` if medseg writes that format, else None.
+
+    ``".nii.gz"`` counts as one suffix; the result is lower case, a key of
+    :data:`IMAGE_SUFFIXES`.
+    """
     name = Path(path).name.lower()
-    for suffix in IMAGE_SUFFIXES:
+    return next((suffix for suffix in IMAGE_SUFFIXES if name.endswith(suffix)), None)
+
+
+def _raw_suffix(path: PathLike) -> str:
+    """The suffix as written (``.tar.gz``, ``.png``, ``.dcm``, ...), lower case."""
+    name = Path(path).name.lower()
+    for suffix in _READ_SUFFIXES:
         if name.endswith(suffix):
             return suffix
     return "".join(Path(name).suffixes[-2:]) if name.endswith(".gz") else Path(name).suffix
 
 
-def _unknown_format(path: PathLike, suffix: str, *, writing: bool = False) -> ImageFormatError:
-    supported = _WRITE_SUFFIXES if writing else tuple(IMAGE_SUFFIXES) + ("a DICOM folder",)
+def _unknown_format(path: PathLike, *, writing: bool = False) -> ImageFormatError:
+    suffix = _raw_suffix(path)
+    supported = tuple(IMAGE_SUFFIXES) if writing else (*_READ_SUFFIXES, "a DICOM folder")
     return ImageFormatError(
         f"{str(path)!r}: unknown image format {suffix or '(no suffix)'!r}; "
-        f"supported: {', '.join(supported)}"
+        f"supported{' for writing' if writing else ''}: {', '.join(supported)}"
     )
 
 
@@ -306,7 +316,7 @@ def _read_dicom_folder(folder: Path, series_id: str | None) -> sitk.Image:
     if not ids:
         raise ImageFormatError(
             f"{str(folder)!r}: folder holds no DICOM series; give an image file "
-            f"({', '.join(IMAGE_SUFFIXES)}) or a folder of DICOM slices"
+            f"({', '.join(_READ_SUFFIXES)}) or a folder of DICOM slices"
         )
     if series_id is None:
         if len(ids) > 1:
@@ -337,15 +347,15 @@ def _itk_reason(exc: RuntimeError) -> str:
 
 
 def _read_file(path: Path) -> sitk.Image:
-    suffix = image_suffix(path)
-    if suffix not in IMAGE_SUFFIXES:
-        raise _unknown_format(path, suffix)
-    if IMAGE_SUFFIXES[suffix] == "NiftiImageIO":
+    suffix = _raw_suffix(path)
+    if suffix not in _READ_SUFFIXES:
+        raise _unknown_format(path)
+    if _READ_SUFFIXES[suffix] == "NiftiImageIO":
         nimg = _check_nifti_complete(path)
         if isinstance(nimg, nib.Nifti2Image):  # ITK 5.4 cannot read NIfTI-2: use nibabel
             return _from_nibabel(nimg, str(path))
     reader = sitk.ImageFileReader()
-    reader.SetImageIO(IMAGE_SUFFIXES[suffix])
+    reader.SetImageIO(_READ_SUFFIXES[suffix])
     reader.SetFileName(str(path))
     try:
         return reader.Execute()
@@ -363,7 +373,7 @@ def read_image(source: Any, *, series_id: str | None = None, name: str | None = 
     ----------
     source : path-like, SimpleITK.Image or nibabel image
         A file ending in one of :data:`IMAGE_SUFFIXES` (``.nii``, ``.nii.gz``, ``.nrrd``,
-        ``.nhdr``, ``.mha``, ``.mhd``, ``.dcm``), a folder holding one DICOM series, a
+        ``.nhdr``, ``.mha``, ``.mhd``) or ``.dcm``, a folder holding one DICOM series, a
         SimpleITK image (checked and returned as is, not copied) or a nibabel image
         (``Nifti1Image``, ``Nifti2Image``, any ``SpatialImage``), converted through its
         affine with RAS -> LPS done once (x and y negated).
@@ -613,8 +623,8 @@ def write_image(
     """
     path = Path(path)
     suffix = image_suffix(path)
-    if suffix not in _WRITE_SUFFIXES:
-        raise _unknown_format(path, suffix, writing=True)
+    if suffix is None:
+        raise _unknown_format(path, writing=True)
     protect = list(protect)
     if isinstance(like, str | os.PathLike):
         protect.append(like)

@@ -103,6 +103,21 @@ def test_mhd_companion_file_is_renamed_with_its_header(tmp_path):
     assert_same_geometry(mio.read_image(tmp_path / "vol.mhd"), image)
 
 
+@pytest.mark.parametrize(
+    ("name", "suffix"),
+    [
+        ("a/B.NII.GZ", ".nii.gz"),
+        ("case.001.nii", ".nii"),
+        ("x.tar.gz", None),
+        ("x.png", None),
+        ("slice.dcm", None),  # read-only format
+        ("noext", None),
+    ],
+)
+def test_image_suffix(name, suffix):
+    assert mio.image_suffix(name) == suffix
+
+
 def test_sitk_image_passes_through_unchanged():
     image = make_image()
     assert mio.read_image(image) is image
