@@ -1,0 +1,110 @@
+"""Batched min-sum kernels on stacks of dense factor tables, and shared solver plumbing."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from medseg.mrf._model import MRF
+
+__all__ = ["forbidden_cost", "working_tables", "min_to_axis", "all_min_marginals", "chunks"]
+
+#: Largest temporary (bytes) a batched kernel allocates at once; blocks are cut to fit.
+CHUNK_BYTES = 8 * 2**20
+
+
+def forbidden_cost(mrf: MRF) -> float:
+    """A finite cost larger than the energy of any labelling built from finite entries.
+
+    Forbidden entries (``+inf``) are replaced by this value inside the solvers so that
+    messages stay finite; a labelling using one has a higher energy than any feasible one,
+    so bounds stay valid.
+    """
+    total = float(np.abs(np.where(np.isfinite(mrf.unaries), mrf.unaries, 0.0)).max(1).sum())
+    for g in mrf.groups.values():
+        flat = g.tables.reshape(len(g), -1)
+        fin = np.isfinite(flat)
+        hi = np.max(flat, axis=1, where=fin, initial=0.0)
+        lo = np.min(flat, axis=1, where=fin, initial=0.0)
+        total += float(np.maximum(np.abs(hi), np.abs(lo)).astype(np.float64).sum())
+    return 10.0 * (total + 1.0)
+
+
+def working_tables(table: np.ndarray, order: np.ndarray, big: float) -> np.ndarray:
+    """Copy of ``table[order]`` (float32) with ``+inf`` replaced by ``big``."""
+    out = np.take(table, order, axis=0)
+    np.minimum(out, np.float32(big), out=out)
+    return out
+
+
+def chunks(n: int, per_item_bytes: int):
+    """Slices of ``range(n)`` whose temporaries stay under :data:`CHUNK_BYTES`."""
+    step = max(1, CHUNK_BYTES // max(per_item_bytes, 1))
+    for start in range(0, n, step):
+        yield slice(start, min(n, start + step))
+
+
+def _bshape(n: int, ndim: int, axis: int, length: int) -> tuple[int, ...]:
+    shape = [n] + [1] * (ndim - 1)
+    shape[axis] = length
+    return tuple(shape)
+
+
+def min_to_axis(tables: np.ndarray, beliefs: dict[int, np.ndarray], keep: int) -> np.ndarray:
+    """Min-sum message of a batch of factors towards one of their variables.
+
+    Parameters
+    ----------
+    tables : (n, L, ..., L) array
+        ``k`` table axes after the batch axis.
+    beliefs : dict of int -> (n, L) array
+        Costs added along every table position except ``keep``.
+    keep : int
+        Table position (0-based) of the receiving variable.
+
+    Returns
+    -------
+    (n, L) array
+        ``min over x_{-keep} [tables[x] + sum_q beliefs[q][x_q]]``.
+    """
+    positions = list(range(tables.ndim - 1))
+    acc = tables
+    for q in sorted(beliefs, reverse=True):  # reduce the last axes first
+        ax = positions.index(q) + 1
+        b = beliefs[q]
+        acc = (acc + b.reshape(_bshape(len(b), acc.ndim, ax, b.shape[1]))).min(axis=ax)
+        positions.remove(q)
+    assert positions == [keep]
+    return acc
+
+
+def all_min_marginals(
+    tables: np.ndarray, beliefs: list[np.ndarray]
+) -> tuple[list[np.ndarray], np.ndarray]:
+    """Min-marginals of ``tables + sum_q beliefs[q]`` for every table position at once.
+
+    Parameters
+    ----------
+    tables : (n, L, ..., L) array, order k = 2 or 3
+    beliefs : list of k (n, L) arrays
+
+    Returns
+    -------
+    mm : list of k (n, L) arrays
+        ``mm[q][c, l] = min over x with x_q = l``.
+    full_min : (n,) array
+        The unconstrained minimum of each factor.
+    """
+    k = tables.ndim - 1
+    n = tables.shape[0]
+    acc = tables + beliefs[k - 1].reshape(_bshape(n, k + 1, k, beliefs[k - 1].shape[1]))
+    for q in range(k - 1):
+        b = beliefs[q]
+        acc += b.reshape(_bshape(n, k + 1, q + 1, b.shape[1]))
+    if k == 2:
+        mm = [acc.min(axis=2), acc.min(axis=1)]
+    elif k == 3:
+        m01 = acc.min(axis=3)
+        mm = [m01.min(axis=2), m01.min(axis=1), acc.min(axis=(1, 2))]
+    else:  # pragma: no cover - orders are validated by MRF
+        raise ValueError(f"unsupported factor order {k}")
+    return mm, mm[0].min(axis=1)
