@@ -18,7 +18,7 @@ import SimpleITK as sitk
 from numpy.typing import ArrayLike
 
 from medseg.errors import ImageGeometryError
-from medseg.io import image_geometry, physical_to_voxel
+from medseg.io import check_same_geometry, physical_to_voxel
 
 __all__ = [
     "dice",
@@ -36,12 +36,10 @@ def _mask(image: sitk.Image) -> sitk.Image:
 
 
 def _check_same_grid(a: sitk.Image, b: sitk.Image) -> None:
-    ga, gb = image_geometry(a), image_geometry(b)
-    if ga["size"] != gb["size"] or not all(
-        np.allclose(ga[k], gb[k], atol=1e-4) for k in ("spacing", "origin", "direction")
-    ):
+    problems = check_same_geometry(a, b)
+    if problems:
         raise ImageGeometryError(
-            "the two label maps are on different grids (size, spacing, origin or direction); "
+            f"the two label maps are on different grids ({'; '.join(problems)}); "
             "resample the prediction onto the reference first"
         )
 
