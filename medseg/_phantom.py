@@ -1,0 +1,361 @@
+"""The synthetic phantom cohort: a bent, tapered, bumpy bean pressed against look-alikes.
+
+The target is a star-shaped surface defined by a radial function over the unit sphere in a
+straight canonical frame, whose long axis is then bent along a circular arc. Every subject
+draws a few smooth shape-mode coefficients, then a random similarity pose. Surface sites are
+fixed directions on the sphere (a Fibonacci lattice), so the same site index is the same
+anatomical point in every subject: correspondence is exact ground truth.
+
+The label is rasterised exactly: a voxel centre is inside when, mapped back to the straight
+canonical frame, its distance from the centre is below the radial function in its direction.
+The image is built from soft occupancies (a partial-volume edge), neighbour blobs whose
+intensity is within a few percent of the target's and which overlap part of its surface,
+a textured background with distractor blobs, a smooth multiplicative bias field and Rician
+noise.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import SimpleITK as sitk
+from scipy import ndimage, special
+from scipy.spatial.transform import Rotation
+from sklearn.utils import check_random_state
+
+from medseg.io import physical_to_voxel, voxel_to_physical
+
+__all__ = ["make_phantom_case", "phantom_landmark_index", "phantom_surface_directions"]
+
+# Fixed anatomy of the phantom, in the straight canonical frame (mm). The long axis is x,
+# the bend goes towards +y (so +y is the concave side), z is "up".
+_HALF_LENGTH = 15.0  # a: semi-axis along the long axis
+_HALF_WIDTH = 7.0  # b: semi-axis along y at the middle
+_HALF_HEIGHT = 5.5  # c: semi-axis along z at the middle
+_TAPER = 0.35  # radii across the axis grow by (1 + taper * u_x): wide head at +x
+_CURVATURE = 1.0 / 30.0  # 1/mm: bend of the long axis
+_BUMP_DIRECTIONS = np.array(
+    [
+        [0.45, -0.75, 0.50],  # a bump on the convex side of the head, upper part
+        [-0.30, 0.20, 0.93],  # a notch on top of the tail
+    ]
+)
+_BUMP_HEIGHTS = np.array([0.30, -0.20])  # relative change of the radius at the peak
+_BUMP_CONCENTRATION = 7.0  # von Mises concentration of the bumps over the sphere
+# Neighbour blobs: parametric direction of the contact site, semi-axes (normal, t1, t2) in mm.
+_NEIGHBOUR_SITES = np.array(
+    [
+        [0.10, 1.00, 0.20],  # inside the curve (concave side), middle
+        [-0.80, -0.25, -0.55],  # under the tail
+    ]
+)
+_NEIGHBOUR_AXES = np.array([[8.0, 11.0, 9.0], [7.0, 9.0, 8.0]])
+_N_MODES = 5  # length, thickness, taper, bend, bump height
+
+_TARGET_INTENSITY = 100.0
+_BACKGROUND_INTENSITY = 50.0
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    v = np.asarray(v, dtype=float)
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def phantom_surface_directions(n_points: int) -> np.ndarray:
+    """Fixed parametric surface sites: a Fibonacci lattice on the unit sphere.
+
+    Parameters
+    ----------
+    n_points : int
+        Number of sites.
+
+    Returns
+    -------
+    directions : (n_points, 3) float array
+        Unit vectors in the straight canonical frame; site ``m`` is the surface point
+        ``r(u_m) u_m`` of every subject, hence in exact correspondence across subjects.
+    """
+    m = np.arange(n_points, dtype=float) + 0.5
+    z = 1.0 - 2.0 * m / n_points
+    phi = np.pi * (1.0 + 5.0**0.5) * m
+    rho = np.sqrt(1.0 - z**2)
+    return np.column_stack([rho * np.cos(phi), rho * np.sin(phi), z])
+
+
+@dataclass(frozen=True)
+class _Shape:
+    """Shape parameters of one subject (straight canonical frame, mm)."""
+
+    a: float
+    b: float
+    c: float
+    taper: float
+    curvature: float
+    bump_heights: np.ndarray
+
+    @classmethod
+    def from_modes(cls, coefficients: np.ndarray) -> _Shape:
+        z = np.clip(np.asarray(coefficients, dtype=float), -2.5, 2.5)
+        thick = 1.0 + 0.08 * z[1]
+        return cls(
+            a=_HALF_LENGTH * (1.0 + 0.08 * z[0]),
+            b=_HALF_WIDTH * thick,
+            c=_HALF_HEIGHT * thick,
+            taper=_TAPER + 0.08 * z[2],
+            curvature=_CURVATURE * (1.0 + 0.25 * z[3]),
+            bump_heights=_BUMP_HEIGHTS * (1.0 + 0.25 * z[4]),
+        )
+
+    def radius(self, u: np.ndarray) -> np.ndarray:
+        """Radial function r(u) in mm for unit vectors ``u`` (N, 3)."""
+        w = 1.0 + self.taper * u[:, 0]
+        r0 = 1.0 / np.sqrt(
+            (u[:, 0] / self.a) ** 2 + (u[:, 1] / (self.b * w)) ** 2 + (u[:, 2] / (self.c * w)) ** 2
+        )
+        cosines = u @ _unit(_BUMP_DIRECTIONS).T
+        bumps = np.exp(_BUMP_CONCENTRATION * (cosines - 1.0)) @ self.bump_heights
+        return r0 * (1.0 + bumps)
+
+    def straight_points(self, u: np.ndarray) -> np.ndarray:
+        return self.radius(u)[:, None] * u
+
+    def bend(self, p: np.ndarray) -> np.ndarray:
+        """Bend the straight x axis along a circle of radius 1/curvature towards +y."""
+        R = 1.0 / self.curvature
+        theta = p[:, 0] / R
+        arm = R - p[:, 1]
+        return np.column_stack([arm * np.sin(theta), R - arm * np.cos(theta), p[:, 2]])
+
+    def unbend(self, q: np.ndarray) -> np.ndarray:
+        """Inverse of :meth:`bend` (valid away from the centre of curvature)."""
+        R = 1.0 / self.curvature
+        dy = R - q[:, 1]
+        return np.column_stack([R * np.arctan2(q[:, 0], dy), R - np.hypot(q[:, 0], dy), q[:, 2]])
+
+    def normals(self, q: np.ndarray, *, h: float = 1e-3) -> np.ndarray:
+        """Outward unit normals at bent-frame points ``q`` (N, 3): the level-set gradient."""
+        grad = np.stack([self.level(q + h * e) - self.level(q - h * e) for e in np.eye(3)], axis=1)
+        return _unit(grad)
+
+    def level(self, q: np.ndarray) -> np.ndarray:
+        """Implicit function, negative inside: |p| - r(p/|p|) for p = unbend(q), in mm."""
+        p = self.unbend(q)
+        rho = np.linalg.norm(p, axis=1)
+        u = p / np.maximum(rho, 1e-9)[:, None]
+        return rho - self.radius(u)
+
+
+def _mean_shape() -> _Shape:
+    return _Shape.from_modes(np.zeros(_N_MODES))
+
+
+def phantom_landmark_index(n_landmarks: int, n_surface_points: int) -> np.ndarray:
+    """Indices of landmark sites spread evenly over the mean phantom surface.
+
+    Farthest-point sampling over the surface sites of the mean shape, started at the tip of
+    the head; the result depends only on the two counts, so landmarks of every phantom
+    cohort built with the same counts are the same parametric sites.
+
+    Parameters
+    ----------
+    n_landmarks : int
+    n_surface_points : int
+
+    Returns
+    -------
+    index : (n_landmarks,) int array
+        Indices into the surface sites of :func:`phantom_surface_directions`.
+    """
+    shape = _mean_shape()
+    points = shape.bend(shape.straight_points(phantom_surface_directions(n_surface_points)))
+    chosen = [int(np.argmax(points[:, 0]))]
+    dist = np.linalg.norm(points - points[chosen[0]], axis=1)
+    for _ in range(n_landmarks - 1):
+        nxt = int(np.argmax(dist))
+        chosen.append(nxt)
+        dist = np.minimum(dist, np.linalg.norm(points - points[nxt], axis=1))
+    return np.asarray(chosen, dtype=int)
+
+
+def _site_frame(shape: _Shape, direction: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Bent surface point at parametric ``direction`` and an orthonormal frame (n, t1, t2)."""
+    point = shape.bend(shape.straight_points(_unit(direction)[None, :]))
+    normal = shape.normals(point)[0]
+    helper = np.array([0.0, 0.0, 1.0]) if abs(normal[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    t1 = _unit(np.cross(normal, helper))
+    return point[0], np.stack([normal, t1, np.cross(normal, t1)])
+
+
+def _soft_occupancy(level: np.ndarray, spacing_zyx: np.ndarray, width: float) -> np.ndarray:
+    """Partial-volume occupancy in [0, 1] from an implicit function on the voxel grid.
+
+    The implicit function is turned into an approximate signed distance in mm by dividing
+    by its gradient norm, then smoothed by an error-function edge of ``width`` mm.
+    """
+    grads = np.gradient(level, *spacing_zyx)
+    norm = np.sqrt(sum(g**2 for g in grads))
+    distance = level / np.maximum(norm, 1e-3)
+    return 0.5 * special.erfc(distance / (np.sqrt(2.0) * width))
+
+
+def _grid_image(size_xyz, spacing_xyz, direction: np.ndarray) -> sitk.Image:
+    """An empty image whose field of view is centred on the world origin."""
+    image = sitk.Image([int(s) for s in size_xyz], sitk.sitkFloat32)
+    image.SetSpacing([float(s) for s in spacing_xyz])
+    image.SetDirection([float(v) for v in direction.ravel()])
+    centre_index = (np.asarray(size_xyz, dtype=float) - 1.0) / 2.0
+    offset = direction @ (np.asarray(spacing_xyz, dtype=float) * centre_index)
+    image.SetOrigin([float(v) for v in -offset])
+    return image
+
+
+def _box(reference: sitk.Image, lo: np.ndarray, hi: np.ndarray) -> tuple[slice, ...]:
+    """Array slices (z, y, x) covering the world-space box [lo, hi] (mm), clipped to the grid."""
+    bounds = np.stack([lo, hi])
+    corners = np.array([bounds[bits, [0, 1, 2]] for bits in np.ndindex(2, 2, 2)])
+    zyx = physical_to_voxel(reference, corners)
+    size_zyx = np.asarray(reference.GetSize())[::-1]
+    start = np.clip(np.floor(zyx.min(axis=0)).astype(int) - 1, 0, size_zyx)
+    stop = np.clip(np.ceil(zyx.max(axis=0)).astype(int) + 2, 0, size_zyx)
+    return tuple(slice(int(a), int(b)) for a, b in zip(start, stop, strict=True))
+
+
+def make_phantom_case(
+    random_state,
+    *,
+    n_surface_points: int = 2000,
+    landmark_index: np.ndarray,
+    size: int = 64,
+    anisotropic: bool = False,
+    oblique: bool = False,
+    max_rotation_deg: float = 30.0,
+    scale_range: tuple[float, float] = (0.8, 1.25),
+    max_translation_mm: float = 4.0,
+    shape_variation: float = 1.0,
+    neighbour_contrast: tuple[float, float] = (0.04, 0.08),
+    n_distractors: int = 3,
+    bias_strength: float = 0.15,
+    noise_std: float = 0.06,
+) -> tuple[sitk.Image, sitk.Image, dict]:
+    """One phantom subject: image, label and metadata (see ``make_phantom_cohort``)."""
+    rng = check_random_state(random_state)
+    modes = shape_variation * rng.standard_normal(_N_MODES)
+    shape = _Shape.from_modes(modes)
+
+    # Canonical frame: the bent shape, centred on the centroid of its surface sites.
+    directions = phantom_surface_directions(n_surface_points)
+    bent = shape.bend(shape.straight_points(directions))
+    centroid = bent.mean(axis=0)
+    canonical = bent - centroid
+
+    # Pose: rotation by an angle up to max_rotation_deg about a uniformly random axis.
+    axis = _unit(rng.standard_normal(3))
+    angle = np.deg2rad(max_rotation_deg) * rng.uniform(0.0, 1.0)
+    rotation = Rotation.from_rotvec(angle * axis).as_matrix()
+    scale = float(np.exp(rng.uniform(np.log(scale_range[0]), np.log(scale_range[1]))))
+    translation = rng.uniform(-max_translation_mm, max_translation_mm, size=3)
+    surface = scale * canonical @ rotation.T + translation
+
+    # Grid geometry.
+    spacing = np.array([1.0, 1.0, 2.0]) if anisotropic else np.ones(3)
+    size_xyz = np.round(size / spacing).astype(int)
+    if oblique:
+        tilt = Rotation.from_rotvec(np.deg2rad(20.0) * _unit(rng.standard_normal(3)))
+        direction = tilt.as_matrix()
+    else:
+        direction = np.eye(3)
+    reference = _grid_image(size_xyz, spacing, direction)
+    shape_zyx = tuple(int(s) for s in size_xyz[::-1])
+    spacing_zyx = spacing[::-1]
+    zyx = np.indices(shape_zyx, dtype=float).reshape(3, -1).T
+    world = voxel_to_physical(reference, zyx).reshape(*shape_zyx, 3)
+    fields = np.random.default_rng(rng.randint(np.iinfo(np.int32).max))
+    width = 0.5  # mm, partial-volume edge of every structure
+
+    def to_local(points: np.ndarray) -> np.ndarray:
+        """World -> bent frame of the shape (inverse pose)."""
+        return ((points - translation) @ rotation) / scale + centroid
+
+    # Target: exact label at voxel centres, soft occupancy for the image; evaluated only in
+    # a box around the surface sites (the shape is star-shaped inside their hull).
+    box = _box(reference, surface.min(axis=0) - 2.0, surface.max(axis=0) + 2.0)
+    target_level = shape.level(to_local(world[box].reshape(-1, 3))) * scale
+    target_level = target_level.reshape(world[box].shape[:3])
+    label = np.zeros(shape_zyx, dtype=np.uint8)
+    label[box] = target_level < 0
+    target = _soft_occupancy(target_level, spacing_zyx, width)
+
+    # Background: smooth texture with distractor blobs of intermediate intensity.
+    texture = ndimage.gaussian_filter(fields.standard_normal(shape_zyx), sigma=3.0 / spacing_zyx)
+    image = _BACKGROUND_INTENSITY * (1.0 + 0.2 * texture / texture.std())
+    for _ in range(n_distractors):
+        radii = rng.uniform(3.5, 7.0, size=3)
+        for _attempt in range(50):
+            centre = rng.uniform(-0.4 * size, 0.4 * size, size=3)
+            if np.min(np.linalg.norm(surface - centre, axis=1)) > radii.max() + 3.0:
+                break
+        else:
+            continue
+        frame = Rotation.from_rotvec(rng.uniform(-np.pi, np.pi, 3)).as_matrix()
+        sub = _box(reference, centre - radii.max() - 2.0, centre + radii.max() + 2.0)
+        level = (
+            np.linalg.norm(((world[sub] - centre) @ frame) / radii, axis=-1) - 1.0
+        ) * radii.min()
+        occ = _soft_occupancy(level, spacing_zyx, width)
+        value = _TARGET_INTENSITY * rng.uniform(0.7, 0.85)
+        image[sub] = image[sub] * (1.0 - occ) + value * occ
+
+    # Neighbours of nearly the target's intensity, pressed into part of its surface.
+    contact = np.zeros(n_surface_points, dtype=bool)
+    probe = bent + 0.75 * shape.normals(bent)
+    neighbour_ratios = []
+    for site, axes in zip(_NEIGHBOUR_SITES, _NEIGHBOUR_AXES, strict=True):
+        point, frame = _site_frame(shape, _unit(site) + 0.12 * rng.standard_normal(3))
+        axes = axes * rng.uniform(0.9, 1.1, size=3)
+        centre_bent = point + frame[0] * (axes[0] - rng.uniform(2.5, 3.5))
+        centre_world = scale * (centre_bent - centroid) @ rotation.T + translation
+        reach = scale * axes.max() + 2.0
+        sub = _box(reference, centre_world - reach, centre_world + reach)
+        level = np.linalg.norm(((to_local(world[sub]) - centre_bent) @ frame.T) / axes, axis=-1)
+        occ = _soft_occupancy((level - 1.0) * axes.min() * scale, spacing_zyx, width)
+        ratio = 1.0 + rng.choice([-1.0, 1.0]) * rng.uniform(*neighbour_contrast)
+        neighbour_ratios.append(float(ratio))
+        image[sub] = image[sub] * (1.0 - occ) + _TARGET_INTENSITY * ratio * occ
+        # Surface sites whose outside neighbourhood (0.75 mm out) lies in this blob.
+        contact |= np.linalg.norm(((probe - centre_bent) @ frame.T) / axes, axis=1) < 1.0
+
+    # The target on top, with a faint inner texture.
+    inner = ndimage.gaussian_filter(fields.standard_normal(target.shape), sigma=2.0 / spacing_zyx)
+    inner_value = _TARGET_INTENSITY * (1.0 + 0.02 * inner / inner.std())
+    image[box] = image[box] * (1.0 - target) + inner_value * target
+
+    # Point spread, smooth multiplicative bias field, Rician noise.
+    image = ndimage.gaussian_filter(image, sigma=0.5)
+    x, y, z = np.moveaxis(world / (0.5 * size), -1, 0)
+    terms = [x, y, z, x * y, y * z, x * z, x**2 - 1 / 3, y**2 - 1 / 3, z**2 - 1 / 3]
+    coefficients = rng.uniform(-1.0, 1.0, size=len(terms))
+    log_bias = sum(c * t for c, t in zip(coefficients, terms, strict=True))
+    log_bias *= np.log1p(bias_strength) / max(np.abs(log_bias).max(), 1e-9)
+    image *= np.exp(log_bias)
+    sigma = noise_std * _TARGET_INTENSITY
+    real = image + sigma * fields.standard_normal(shape_zyx)
+    imag = sigma * fields.standard_normal(shape_zyx)
+    image = np.sqrt(real**2 + imag**2)
+
+    out = sitk.GetImageFromArray(image.astype(np.float32))
+    out.CopyInformation(reference)
+    lab = sitk.GetImageFromArray(label)
+    lab.CopyInformation(reference)
+    meta = {
+        "surface_points": surface,
+        "landmark_index": np.asarray(landmark_index, dtype=int).copy(),
+        "pose": {"rotation": rotation, "scale": scale, "translation": translation},
+        "rotation_deg": float(np.rad2deg(angle)),
+        "canonical_points": canonical,
+        "shape_modes": modes,
+        "contact": contact,
+        "neighbour_intensity_ratio": neighbour_ratios,
+        "spacing": tuple(float(s) for s in spacing),
+    }
+    return out, lab, meta

@@ -1,0 +1,250 @@
+"""Figures medseg can write: a slice of an image next to, and overlaid with, its label.
+
+Rendering uses matplotlib's Agg backend (no display needed) and the file is written
+atomically. Run ``python -m medseg.viz docs/phantom.png`` to draw a few subjects of the
+synthetic phantom cohort.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import io as _bytes_io
+import os
+import sys
+import tempfile
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import SimpleITK as sitk
+
+from medseg.errors import ImageGeometryError, InputFileError, MedsegError
+
+__all__ = ["save_slice_png", "save_cohort_png", "main"]
+
+_AXIS_NAMES = {0: "z", 1: "y", 2: "x"}
+
+
+def _read(source, *, kind: str) -> sitk.Image:
+    if isinstance(source, sitk.Image):
+        return source
+    try:
+        from medseg.io import read_image, read_label
+    except ImportError:  # pragma: no cover - io not extended yet
+        return sitk.ReadImage(str(source))
+    return read_label(source) if kind == "label" else read_image(source)
+
+
+@contextlib.contextmanager
+def _atomic(path: Path):
+    try:
+        from medseg.io import atomic_write
+    except ImportError:  # pragma: no cover - io not extended yet
+        atomic_write = None
+    if atomic_write is not None:
+        with atomic_write(path) as tmp:
+            yield Path(tmp)
+        return
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    os.close(fd)
+    try:
+        yield Path(tmp)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def _slice_arrays(
+    image: sitk.Image, label: sitk.Image | None, axis: int, index: int | None
+) -> tuple[np.ndarray, np.ndarray | None, int, float]:
+    """2D image and label slices (rows, cols), the slice index and the pixel aspect ratio."""
+    if image.GetDimension() != 3:
+        raise ImageGeometryError(f"save_slice_png needs a 3D image, got {image.GetDimension()}D")
+    if axis not in _AXIS_NAMES:
+        raise ValueError(f"`axis` must be 0 (z), 1 (y) or 2 (x) of the (z, y, x) array, not {axis}")
+    array = sitk.GetArrayViewFromImage(image)
+    lab = None
+    if label is not None:
+        if label.GetSize() != image.GetSize():
+            raise ImageGeometryError(
+                f"label size {label.GetSize()} differs from image size {image.GetSize()}: "
+                "pass the label map that belongs to this image"
+            )
+        lab = sitk.GetArrayViewFromImage(label)
+    if index is None:
+        if lab is not None and np.any(lab):
+            # The slice with the largest labelled area.
+            other = tuple(a for a in range(3) if a != axis)
+            index = int(np.argmax(np.count_nonzero(lab, axis=other)))
+        else:
+            index = array.shape[axis] // 2
+    if not 0 <= index < array.shape[axis]:
+        raise ValueError(f"`index` {index} is outside 0..{array.shape[axis] - 1} along axis {axis}")
+    image2d = np.take(array, index, axis=axis)
+    label2d = None if lab is None else np.take(lab, index, axis=axis)
+    spacing_zyx = np.asarray(image.GetSpacing())[::-1]
+    rows, cols = [a for a in range(3) if a != axis]
+    return image2d, label2d, index, float(spacing_zyx[rows] / spacing_zyx[cols])
+
+
+def _draw(axes_row, image2d, label2d, aspect: float, title: str) -> None:
+    from matplotlib.colors import ListedColormap
+
+    lo, hi = np.percentile(image2d, [1, 99.5])
+    show = {"cmap": "gray", "vmin": lo, "vmax": hi, "aspect": aspect, "origin": "lower"}
+    axes_row[0].imshow(image2d, interpolation="nearest", **show)
+    axes_row[0].set_title(title, fontsize=8)
+    if label2d is not None:
+        colours = ListedColormap(["black", "tab:orange", "tab:cyan", "tab:green", "tab:pink"])
+        axes_row[1].imshow(
+            np.clip(label2d, 0, 4),
+            cmap=colours,
+            vmin=0,
+            vmax=4,
+            aspect=aspect,
+            origin="lower",
+            interpolation="nearest",
+        )
+        axes_row[1].set_title("label", fontsize=8)
+        axes_row[2].imshow(image2d, interpolation="nearest", **show)
+        for value in np.unique(label2d[label2d > 0]):
+            axes_row[2].contour(
+                label2d == value,
+                levels=[0.5],
+                colors=[colours(int(min(value, 4)))],
+                linewidths=0.8,
+            )
+        axes_row[2].set_title("overlay", fontsize=8)
+    for ax in axes_row:
+        ax.set_xticks([])
+        ax.set_yticks([])
+
+
+def _save_figure(fig, path: Path, dpi: int) -> Path:
+    path = Path(path)
+    if not path.parent.is_dir():
+        raise InputFileError(f"cannot write {path}: folder {path.parent} does not exist")
+    buffer = _bytes_io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=dpi, bbox_inches="tight")
+    with _atomic(path) as tmp:
+        Path(tmp).write_bytes(buffer.getvalue())
+    return path
+
+
+def save_slice_png(
+    image,
+    label,
+    path: str | os.PathLike,
+    *,
+    axis: int = 0,
+    index: int | None = None,
+    dpi: int = 110,
+) -> Path:
+    """Write one slice of an image next to its label and overlaid with it, as a PNG.
+
+    Parameters
+    ----------
+    image : sitk.Image, nibabel image or path
+        3D image.
+    label : sitk.Image, nibabel image, path or None
+        Label map on the image's grid; ``None`` draws the image alone.
+    path : path-like
+        Output ``.png``; written atomically (temporary file, then rename).
+    axis : {0, 1, 2}, default 0
+        Axis of the SimpleITK ``(z, y, x)`` array to cut across: 0 gives a slice of constant
+        z index. Pixels are drawn with the physical aspect ratio of the spacing.
+    index : int, optional
+        Slice index along ``axis``. Default: the slice with the largest labelled area, or
+        the middle slice without a label.
+    dpi : int, default 110
+
+    Returns
+    -------
+    path : Path
+        The written file.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    from matplotlib.figure import Figure
+
+    image = _read(image, kind="image")
+    label = None if label is None else _read(label, kind="label")
+    image2d, label2d, index, aspect = _slice_arrays(image, label, axis, index)
+    n_panels = 1 if label2d is None else 3
+    fig = Figure(figsize=(2.4 * n_panels, 2.6))
+    axes = fig.subplots(1, n_panels, squeeze=False)[0]
+    _draw(axes, image2d, label2d, aspect, f"image, {_AXIS_NAMES[axis]} index {index}")
+    return _save_figure(fig, path, dpi)
+
+
+def save_cohort_png(
+    cohort, path: str | os.PathLike, *, n_cases: int = 3, axis: int = 0, dpi: int = 90
+) -> Path:
+    """Write a grid of the first ``n_cases`` cases: image, label and overlay per row.
+
+    Parameters
+    ----------
+    cohort : Cohort
+        From :func:`medseg.datasets.load_cohort` or :func:`medseg.datasets.make_phantom_cohort`.
+    path : path-like
+        Output ``.png``; written atomically.
+    n_cases : int, default 3
+    axis : {0, 1, 2}, default 0
+        See :func:`save_slice_png`.
+    dpi : int, default 90
+
+    Returns
+    -------
+    path : Path
+    """
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    from matplotlib.figure import Figure
+
+    cases = list(cohort)[:n_cases]
+    if not cases:
+        raise MedsegError("save_cohort_png: the cohort has no cases to draw")
+    fig = Figure(figsize=(7.2, 2.5 * len(cases)))
+    grid = fig.subplots(len(cases), 3, squeeze=False)
+    for row, case in zip(grid, cases, strict=True):
+        image = case.load_image()
+        label = case.load_label()
+        image2d, label2d, index, aspect = _slice_arrays(image, label, axis, None)
+        _draw(row, image2d, label2d, aspect, f"{case.case_id}, {_AXIS_NAMES[axis]} = {index}")
+    return _save_figure(fig, path, dpi)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Draw phantom subjects: ``python -m medseg.viz OUT.png [--n-cases 3] [--seed 0]``."""
+    from medseg._cli import run_cli
+
+    parser = argparse.ArgumentParser(
+        prog="python -m medseg.viz",
+        description="Draw slices of synthetic phantom subjects with their labels as a PNG.",
+    )
+    parser.add_argument("output", type=Path, help="PNG file to write")
+    parser.add_argument("--n-cases", type=int, default=3, help="subjects to draw (default: 3)")
+    parser.add_argument("--seed", type=int, default=0, help="phantom random_state (default: 0)")
+    parser.add_argument(
+        "--anisotropic", action="store_true", help="1 x 1 x 2 mm phantom (default: 1 mm)"
+    )
+    parser.add_argument("--axis", type=int, default=0, help="array axis to cut (default: 0, z)")
+
+    def body(args: argparse.Namespace) -> int:
+        from medseg.datasets import make_phantom_cohort
+
+        cohort = make_phantom_cohort(
+            args.n_cases, anisotropic=args.anisotropic, random_state=args.seed
+        )
+        save_cohort_png(cohort, args.output, n_cases=args.n_cases, axis=args.axis)
+        return 0
+
+    return run_cli(body, parser, argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
