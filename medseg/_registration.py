@@ -1,0 +1,306 @@
+"""Point-set registration used to build landmark correspondences.
+
+Private helpers on plain arrays of physical points ``(N, 3)`` in mm:
+
+* :func:`similarity_fit`: least-squares similarity (rotation, uniform scale, translation)
+  between paired points (Umeyama 1991);
+* :func:`principal_axes_candidates`: moment / principal-axes initialisations, one per sign
+  choice of the axes (the 4 proper rotations, or all 8 when reflections are allowed);
+* :func:`icp_similarity`: iterative closest point with a similarity transform;
+* :func:`cpd_nonrigid`: coherent point drift, non-rigid (Myronenko & Song 2010);
+* :func:`farthest_point_sampling`: evenly spread subset of a point set.
+
+References
+----------
+.. [1] S. Umeyama, "Least-squares estimation of transformation parameters between two point
+   patterns", IEEE TPAMI 13(4), 1991. :doi:`10.1109/34.88573`
+.. [2] A. Myronenko and X. Song, "Point set registration: coherent point drift", IEEE TPAMI
+   32(12), 2010. :doi:`10.1109/TPAMI.2010.46`
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from itertools import product
+
+import numpy as np
+from scipy.spatial import cKDTree
+from sklearn.utils import check_random_state
+
+__all__ = [
+    "Similarity",
+    "similarity_fit",
+    "principal_axes_candidates",
+    "icp_similarity",
+    "cpd_nonrigid",
+    "CPDResult",
+    "farthest_point_sampling",
+]
+
+
+@dataclass(frozen=True)
+class Similarity:
+    """``y = scale * x @ rotation.T + translation``; ``rotation`` may be improper (det -1)."""
+
+    rotation: np.ndarray  # (3, 3)
+    scale: float
+    translation: np.ndarray  # (3,)
+
+    def __call__(self, points: np.ndarray) -> np.ndarray:
+        return self.scale * np.asarray(points, float) @ self.rotation.T + self.translation
+
+    def inverse(self, points: np.ndarray) -> np.ndarray:
+        return (np.asarray(points, float) - self.translation) @ self.rotation / self.scale
+
+    def compose(self, first: Similarity) -> Similarity:
+        """The transform ``self(first(x))``."""
+        return Similarity(
+            rotation=self.rotation @ first.rotation,
+            scale=self.scale * first.scale,
+            translation=self.scale * first.translation @ self.rotation.T + self.translation,
+        )
+
+    def matrix(self) -> np.ndarray:
+        """Homogeneous (4, 4) matrix acting on column vectors (x, y, z, 1)."""
+        m = np.eye(4)
+        m[:3, :3] = self.scale * self.rotation
+        m[:3, 3] = self.translation
+        return m
+
+
+def similarity_fit(
+    src: np.ndarray,
+    dst: np.ndarray,
+    *,
+    weights: np.ndarray | None = None,
+    allow_reflection: bool = False,
+) -> Similarity:
+    """Least-squares similarity mapping paired ``src`` points onto ``dst`` (Umeyama).
+
+    Parameters
+    ----------
+    src, dst : (N, 3) float arrays, mm
+    weights : (N,) float array, optional
+    allow_reflection : bool
+        If False the rotation is proper (det +1).
+    """
+    w = np.ones(len(src)) if weights is None else np.asarray(weights, float)
+    w = w / w.sum()
+    mu_s = w @ src
+    mu_d = w @ dst
+    xs = src - mu_s
+    xd = dst - mu_d
+    cov = (xd * w[:, None]).T @ xs
+    u, sig, vt = np.linalg.svd(cov)
+    d = np.ones(3)
+    if not allow_reflection and np.linalg.det(u) * np.linalg.det(vt) < 0:
+        d[-1] = -1.0
+    rot = (u * d) @ vt
+    var_s = float(w @ np.einsum("ij,ij->i", xs, xs))
+    scale = float((sig * d).sum() / var_s) if var_s > 0 else 1.0
+    return Similarity(rotation=rot, scale=scale, translation=mu_d - scale * mu_s @ rot.T)
+
+
+def _principal_frame(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    centre = points.mean(axis=0)
+    cov = np.cov((points - centre).T)
+    evals, evecs = np.linalg.eigh(cov)
+    order = np.argsort(evals)[::-1]
+    return centre, np.clip(evals[order], 0.0, None), evecs[:, order]
+
+
+def principal_axes_candidates(
+    src: np.ndarray, dst: np.ndarray, *, allow_reflection: bool = False
+) -> list[Similarity]:
+    """Similarities that put the principal axes of ``src`` onto those of ``dst``.
+
+    The axes of a point cloud are defined up to sign: this returns one transform per sign
+    choice, 4 proper rotations (det +1), or 8 if ``allow_reflection``. The scale matches the
+    root-mean-square radii of the two clouds.
+
+    Parameters
+    ----------
+    src, dst : (N, 3), (M, 3) float arrays, mm
+
+    Returns
+    -------
+    list of Similarity
+    """
+    c_s, ev_s, e_s = _principal_frame(src)
+    c_d, ev_d, e_d = _principal_frame(dst)
+    scale = float(np.sqrt(ev_d.sum() / ev_s.sum())) if ev_s.sum() > 0 else 1.0
+    out = []
+    for signs in product((1.0, -1.0), repeat=3):
+        rot = (e_d * np.asarray(signs)) @ e_s.T
+        if not allow_reflection and np.linalg.det(rot) < 0:
+            continue
+        out.append(Similarity(rotation=rot, scale=scale, translation=c_d - scale * c_s @ rot.T))
+    return out
+
+
+def icp_similarity(
+    src: np.ndarray,
+    dst: np.ndarray,
+    init: Similarity,
+    *,
+    dst_tree: cKDTree | None = None,
+    max_iter: int = 40,
+    tol: float = 1e-6,
+    allow_reflection: bool = False,
+) -> tuple[Similarity, float]:
+    """Refine a similarity by symmetric iterative closest points.
+
+    Each iteration pairs every moved ``src`` point with its nearest ``dst`` point and every
+    ``dst`` point with its nearest moved ``src`` point, then refits the similarity on both
+    pairings; the symmetric pairing stops the scale from collapsing.
+
+    Returns
+    -------
+    transform : Similarity
+    error : float, mm
+        Symmetric mean closest-point distance at the end.
+    """
+    tree_d = dst_tree if dst_tree is not None else cKDTree(dst)
+    tf = init
+    prev = np.inf
+    err = np.inf
+    for _ in range(max_iter):
+        moved = tf(src)
+        d1, i1 = tree_d.query(moved)
+        tree_m = cKDTree(moved)
+        d2, i2 = tree_m.query(dst)
+        err = 0.5 * (d1.mean() + d2.mean())
+        if prev - err < tol * max(err, 1e-12):
+            break
+        prev = err
+        pairs_src = np.concatenate([src, src[i2]])
+        pairs_dst = np.concatenate([dst[i1], dst])
+        tf = similarity_fit(pairs_src, pairs_dst, allow_reflection=allow_reflection)
+    return tf, float(err)
+
+
+@dataclass(frozen=True)
+class CPDResult:
+    """Outcome of :func:`cpd_nonrigid`: ``warp(points)`` moves any points of the source frame."""
+
+    moved: np.ndarray  # (M, 3) registered source points
+    sigma2: float
+    n_iter: int
+    _y: np.ndarray
+    _w: np.ndarray
+    _beta: float
+
+    def warp(self, points: np.ndarray) -> np.ndarray:
+        """Apply the fitted displacement field ``v(z) = sum_m G(z, y_m) w_m`` to points."""
+        points = np.asarray(points, float)
+        out = np.empty_like(points)
+        step = 4096
+        for s in range(0, len(points), step):
+            p = points[s : s + step]
+            d2 = ((p[:, None, :] - self._y[None, :, :]) ** 2).sum(-1)
+            out[s : s + step] = p + np.exp(-d2 / (2.0 * self._beta**2)) @ self._w
+        return out
+
+
+def cpd_nonrigid(
+    y: np.ndarray,
+    x: np.ndarray,
+    *,
+    beta: float = 2.0,
+    lam: float = 2.0,
+    w: float = 0.0,
+    max_iter: int = 100,
+    tol: float = 1e-5,
+) -> CPDResult:
+    """Coherent point drift, non-rigid: move the source ``y`` onto the target ``x``.
+
+    ``y`` are the Gaussian mixture centroids, displaced by ``G W`` with the Gaussian kernel
+    ``G_ij = exp(-|y_i - y_j|^2 / (2 beta^2))``; the EM steps follow [2]_ (fig. 4).
+
+    Parameters
+    ----------
+    y : (M, 3) float array
+        Source points (moving), in the same units as ``beta``.
+    x : (N, 3) float array
+        Target points.
+    beta : float
+        Width of the smoothness kernel (same units as the points).
+    lam : float
+        Regularisation weight (larger: smoother displacement).
+    w : float in [0, 1)
+        Weight of the uniform outlier component.
+    max_iter, tol
+        EM stops when the relative change of ``sigma2`` falls below ``tol``.
+    """
+    y = np.asarray(y, float)
+    x = np.asarray(x, float)
+    m, d = y.shape
+    n = x.shape[0]
+    g = np.exp(-((y[:, None, :] - y[None, :, :]) ** 2).sum(-1) / (2.0 * beta**2))
+    wmat = np.zeros((m, d))
+    ty = y.copy()
+    sigma2 = float(((x[None, :, :] - y[:, None, :]) ** 2).sum() / (d * m * n))
+    sigma2 = max(sigma2, 1e-10)
+    it = 0
+    for it in range(1, max_iter + 1):  # noqa: B007
+        d2 = ((x[None, :, :] - ty[:, None, :]) ** 2).sum(-1)  # (M, N)
+        p = np.exp(-d2 / (2.0 * sigma2))
+        c = (2.0 * np.pi * sigma2) ** (d / 2.0) * w / (1.0 - w) * m / n
+        den = p.sum(axis=0) + c
+        p /= np.maximum(den, np.finfo(float).tiny)[None, :]
+        p1 = p.sum(axis=1)
+        pt1 = p.sum(axis=0)
+        px = p @ x
+        np_ = pt1.sum()
+        # (G + lam sigma2 diag(P1)^-1) W = diag(P1)^-1 PX - Y, multiplied by diag(P1) so
+        # that points with no matches (P1 ~ 0) do not make the system singular.
+        a = g * p1[:, None] + lam * sigma2 * np.eye(m)
+        rhs = px - p1[:, None] * y
+        wmat = np.linalg.solve(a, rhs)
+        ty = y + g @ wmat
+        prev = sigma2
+        sigma2 = float(
+            (
+                (pt1 * (x**2).sum(1)).sum()
+                - 2.0 * np.einsum("ij,ij->", px, ty)
+                + (p1 * (ty**2).sum(1)).sum()
+            )
+            / (np_ * d)
+        )
+        sigma2 = max(sigma2, 1e-10)
+        if abs(prev - sigma2) / prev < tol:
+            break
+    return CPDResult(moved=ty, sigma2=sigma2, n_iter=it, _y=y, _w=wmat, _beta=beta)
+
+
+def farthest_point_sampling(
+    points: np.ndarray, n: int, *, start: int | None = None, random_state=None
+) -> np.ndarray:
+    """Indices of ``n`` points spread evenly by greedy farthest-point sampling (Euclidean).
+
+    Parameters
+    ----------
+    points : (M, 3) float array
+    n : int, ``n <= M``
+    start : int, optional
+        First index; default: the point farthest from the centroid (deterministic), or a
+        random one if ``random_state`` is given.
+
+    Returns
+    -------
+    (n,) int array
+    """
+    points = np.asarray(points, float)
+    if start is None:
+        if random_state is None:
+            start = int(np.argmax(((points - points.mean(0)) ** 2).sum(1)))
+        else:
+            start = int(check_random_state(random_state).randint(len(points)))
+    idx = np.empty(n, dtype=np.intp)
+    idx[0] = start
+    dist = ((points - points[start]) ** 2).sum(1)
+    for k in range(1, n):
+        nxt = int(np.argmax(dist))
+        idx[k] = nxt
+        dist = np.minimum(dist, ((points - points[nxt]) ** 2).sum(1))
+    return idx

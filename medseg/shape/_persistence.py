@@ -1,0 +1,139 @@
+"""Save / load a fitted :class:`TripletPrior` as NPZ arrays with a JSON header (no pickle)."""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+import zipfile
+from pathlib import Path
+
+import numpy as np
+
+from medseg.errors import InputFileError, ModelFileError
+
+__all__ = ["prior_state", "prior_from_state", "save_prior", "load_prior"]
+
+_ARRAYS = ("mean_shape_", "cliques_", "weights_", "means_", "precisions_cholesky_",
+           "n_components_")  # fmt: skip
+_PARAMS = ("density", "invariant", "alpha", "max_components", "reg_covar", "n_neighbors",
+           "max_cliques")  # fmt: skip
+
+
+def prior_state(prior) -> tuple[dict, dict[str, np.ndarray]]:
+    """``(header, arrays)`` of a fitted prior: JSON-able dict and named numpy arrays.
+
+    Lets a composite model embed the prior in its own file.
+    """
+    params = {name: getattr(prior, name) for name in _PARAMS}
+    params["cliques"] = prior.cliques if isinstance(prior.cliques, str) else "explicit"
+    rs = prior.random_state
+    params["random_state"] = int(rs) if isinstance(rs, (int, np.integer)) else None
+    header = {
+        "format": prior.FORMAT,
+        "format_version": prior.FORMAT_VERSION,
+        "params": params,
+        "n_landmarks": int(prior.n_landmarks_),
+        "n_training_shapes": int(prior.n_training_shapes_),
+    }
+    arrays = {name.rstrip("_"): np.asarray(getattr(prior, name)) for name in _ARRAYS}
+    return header, arrays
+
+
+def prior_from_state(cls, header: dict, arrays: dict, *, source: str = "the model"):
+    """Rebuild a prior from :func:`prior_state` output; ``ModelFileError`` on any mismatch."""
+    if header.get("format") != cls.FORMAT:
+        raise ModelFileError(
+            f"{source} is not a medseg TripletPrior (format {header.get('format')!r})"
+        )
+    version = header.get("format_version")
+    if version != cls.FORMAT_VERSION:
+        raise ModelFileError(
+            f"{source} has TripletPrior format version {version!r}; this medseg reads version "
+            f"{cls.FORMAT_VERSION}. Refit the prior with this version of medseg."
+        )
+    try:
+        params = dict(header["params"])
+        n = int(header["n_landmarks"])
+        get = {name: np.asarray(arrays[name.rstrip("_")]) for name in _ARRAYS}
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ModelFileError(f"{source} is incomplete or corrupt: missing {exc}") from None
+    c = len(get["cliques_"])
+    k = get["weights_"].shape[-1] if get["weights_"].ndim == 2 else -1
+    expected = {
+        "mean_shape_": (n, 3),
+        "cliques_": (c, 3),
+        "weights_": (c, k),
+        "means_": (c, k, 2),
+        "precisions_cholesky_": (c, k, 2, 2),
+        "n_components_": (c,),
+    }
+    for name, shape in expected.items():
+        if get[name].shape != shape or not np.all(np.isfinite(get[name])):
+            raise ModelFileError(
+                f"{source} is corrupt: array {name.rstrip('_')!r} has shape {get[name].shape} "
+                f"(expected {shape}) or non-finite values"
+            )
+    cl = get["cliques_"]
+    pc = get["precisions_cholesky_"]
+    w = get["weights_"]
+    if (
+        c == 0
+        or cl.min() < 0
+        or cl.max() >= n
+        or not np.all(pc[..., 0, 0] > 0)
+        or not np.all(pc[..., 1, 1] > 0)
+        or not np.all(w >= 0)
+        or not np.allclose(w.sum(axis=1), 1.0)
+    ):
+        raise ModelFileError(f"{source} is corrupt: clique indices or precisions are invalid")
+    cliques_param = params.pop("cliques")
+    params.pop("random_state", None)
+    prior = cls(
+        cliques=cl.astype(np.int64) if cliques_param == "explicit" else cliques_param, **params
+    )
+    prior.n_landmarks_ = n
+    prior.n_training_shapes_ = int(header.get("n_training_shapes", 0))
+    for name in _ARRAYS:
+        setattr(prior, name, get[name].astype(np.int64 if name in ("cliques_", "n_components_")
+                                              else float))  # fmt: skip
+    return prior
+
+
+def save_prior(prior, path) -> Path:
+    path = Path(path)
+    if path.suffix != ".npz":
+        path = path.with_name(path.name + ".npz")
+    if not path.parent.is_dir():
+        raise InputFileError(f"cannot save the prior to {path}: folder {path.parent} is missing")
+    header, arrays = prior_state(prior)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            np.savez(fh, header=np.array(json.dumps(header, sort_keys=True)), **arrays)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def load_prior(cls, path):
+    path = Path(path)
+    if not path.is_file():
+        raise InputFileError(f"prior file {path} does not exist")
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            arrays = {name: npz[name] for name in npz.files}
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
+        raise ModelFileError(
+            f"{path} is not a readable NPZ model file ({exc}); it may be truncated or not a "
+            "medseg model"
+        ) from None
+    try:
+        header = json.loads(str(arrays.pop("header")))
+    except (KeyError, ValueError) as exc:
+        raise ModelFileError(f"{path} has no valid JSON header ({exc})") from None
+    if not isinstance(header, dict):
+        raise ModelFileError(f"{path} has no valid JSON header")
+    return prior_from_state(cls, header, arrays, source=str(path))
