@@ -30,6 +30,7 @@ __all__ = [
     "as_input_type",
     "write_image",
     "write_dicom_series",
+    "check_image",
     "check_same_geometry",
 ]
 
@@ -523,14 +524,19 @@ def read_label(source: Any, reference: Any = None, *, name: str | None = None) -
     return label
 
 
-def select_labels(label_image: sitk.Image, labels: int | Iterable[int]) -> sitk.Image:
+def select_labels(
+    label_image: Any, labels: int | Iterable[int], *, name: str | None = None
+) -> sitk.Image:
     """Binary mask of the union of some labels.
 
     Parameters
     ----------
     label_image : 3D SimpleITK image with integer voxels
+        Or anything :func:`read_label` accepts (path, nibabel image).
     labels : int or iterable of int
         Label values to keep, e.g. ``(1, 2)`` for the whole MSD hippocampus.
+    name : str, optional
+        Name of the label map for the error message (default: its path if given one).
 
     Returns
     -------
@@ -543,13 +549,19 @@ def select_labels(label_image: sitk.Image, labels: int | Iterable[int]) -> sitk.
     LabelError
         The mask is empty: none of ``labels`` occurs. The message lists the labels that do.
     """
+    if isinstance(label_image, sitk.Image):
+        label_name = name or "label map"
+    else:
+        label_name = _describe(label_image, name)
+        label_image = read_label(label_image, name=label_name)
     wanted = [int(labels)] if np.isscalar(labels) else [int(v) for v in labels]
     values = sitk.GetArrayViewFromImage(label_image)
     mask = np.isin(values, wanted)
     if not mask.any():
         present = [int(v) for v in np.unique(values)]
         raise LabelError(
-            f"label map has none of the labels {wanted} (empty mask); labels present: {present}"
+            f"{label_name} has none of the labels {wanted} (empty mask); labels present: "
+            f"{present}. Check the label numbers (dataset.json) or the file"
         )
     out = sitk.GetImageFromArray(mask.astype(np.uint8))
     out.CopyInformation(label_image)

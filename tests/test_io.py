@@ -524,6 +524,13 @@ def test_select_labels():
     assert "[5, 7]" in str(info.value) and "[0, 1, 2, 3]" in str(info.value)
 
 
+def test_select_labels_empty_label_file_names_the_file(tmp_path):
+    empty = sitk.Image([4, 5, 6], sitk.sitkUInt8)
+    path = mio.write_image(empty, tmp_path / "blank_seg.nii.gz")
+    with pytest.raises(LabelError, match=r"blank_seg\.nii\.gz has none of the labels \[1\]"):
+        mio.select_labels(path, 1)
+
+
 def test_resample_like_label_and_image():
     label = sitk.GetImageFromArray(
         np.random.default_rng(3).integers(0, 4, (8, 9, 10)).astype(np.uint8)
