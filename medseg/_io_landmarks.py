@@ -143,6 +143,8 @@ def _read_mrk_json(path: Path, text: str) -> tuple[np.ndarray, list[str]]:
     points, labels = [], []
     search_from = 0
     for m, markup in enumerate(markups):
+        if not isinstance(markup, dict) or not isinstance(markup.get("controlPoints", []), list):
+            raise _error(path, None, f"markup {m} is not a markups object with controlPoints")
         system = str(markup.get("coordinateSystem", "LPS")).upper()  # schema default: LPS
         if system not in ("LPS", "RAS"):
             raise _error(
@@ -159,6 +161,8 @@ def _read_mrk_json(path: Path, text: str) -> tuple[np.ndarray, list[str]]:
         for p, point in enumerate(markup.get("controlPoints", [])):
             line = _json_line(text, '"position"', search_from)
             search_from = text.find('"position"', search_from) + 1
+            if not isinstance(point, dict):
+                raise _error(path, line, f"markup {m}, control point {p} is not an object")
             status = point.get("positionStatus", "defined")
             position = point.get("position")
             if status not in ("defined", "preview") or position is None:

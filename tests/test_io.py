@@ -348,6 +348,8 @@ def test_csv_landmarks_any_column_order(tmp_path):
         ("word.fcsv", "# CoordinateSystem = LPS\n\nn,1,2,three,0\n", "line 3"),
         ("bad.mrk.json", '{"markups": [\n{"controlPoints": [}\n]}', "line 2"),
         ("nomarkups.mrk.json", '{"foo": 1}', "markups"),
+        ("notobj.mrk.json", '{"markups": [3]}', "markup 0"),
+        ("pos.mrk.json", '{"markups": [{"controlPoints": [\n{"position": [1, 2]}]}]}', "line 2"),
     ],
 )
 def test_bad_landmark_files_name_file_and_line(tmp_path, name, text, where):
