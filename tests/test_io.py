@@ -207,6 +207,17 @@ def test_real_hippocampus_image_same_through_itk_and_nibabel(hippocampus_dir):
     )
 
 
+def test_real_hippocampus_labels_match_their_images(hippocampus_dir):
+    for path in sorted((hippocampus_dir / "imagesTr").glob("*.nii.gz"))[:5]:
+        image = mio.read_image(path)
+        label = mio.read_label(hippocampus_dir / "labelsTr" / path.name, reference=image)
+        assert label.GetPixelID() in (sitk.sitkUInt8, sitk.sitkInt16, sitk.sitkUInt16)
+        assert set(np.unique(sitk.GetArrayViewFromImage(label))) <= {0, 1, 2}
+        whole = mio.select_labels(label, (1, 2))
+        counts = np.bincount(sitk.GetArrayViewFromImage(label).ravel(), minlength=3)
+        assert sitk.GetArrayViewFromImage(whole).sum() == counts[1] + counts[2] > 0
+
+
 # --------------------------------------------------------------------------- coordinates
 
 
