@@ -1,0 +1,122 @@
+"""The methods compared in one evaluation run, and how each is built per fold.
+
+A :class:`MethodSpec` is one estimator fitted once per fold (``fit(cohort)``) and one or more
+named *variants* segmented from that fitted estimator (``segment(image, **kwargs)``). The
+shape-prior segmenter gives two variants from one fit: the method itself
+(``use_prior=True``) and the detection-only baseline (``use_prior=False``), so both see the
+same forests, folds and seed.
+
+Any estimator with ``fit(cohort) -> self`` and ``segment(image, **kwargs)`` returning an
+object with ``.label`` (a SimpleITK image on the input's grid) and ``.landmarks`` ((N, 3) mm)
+can be evaluated; ``.mrf.gap`` is recorded when present.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+from medseg.errors import MedsegError
+
+__all__ = ["MethodSpec", "METHOD_NAMES", "default_methods", "resolve_methods"]
+
+#: Names accepted by :func:`resolve_methods` (and ``medseg-evaluate --methods``).
+METHOD_NAMES = ("shape_prior", "detection", "asm")
+
+
+@dataclass(frozen=True)
+class MethodSpec:
+    """One estimator per fold, and the named variants segmented from it.
+
+    Parameters
+    ----------
+    estimator : callable
+        Called as ``estimator(**params, random_state=seed)`` once per fold; the result must
+        have ``fit(cohort)`` and ``segment(image, **kwargs)``.
+    params : dict
+        Constructor keyword arguments (besides ``random_state``).
+    variants : dict of str to dict
+        Method name (a column value of the results) to the ``segment`` keyword arguments.
+    """
+
+    estimator: Callable[..., Any]
+    params: dict = field(default_factory=dict)
+    variants: dict = field(default_factory=dict)
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(self.variants)
+
+    def build(self, seed: int):
+        """A fresh, unfitted estimator for one fold."""
+        return self.estimator(**self.params, random_state=seed)
+
+
+def default_methods(
+    names: Iterable[str] = METHOD_NAMES,
+    *,
+    labels: Sequence[int] = (1,),
+    n_landmarks: int | None = None,
+    segmenter_params: dict | None = None,
+    asm_params: dict | None = None,
+) -> tuple[MethodSpec, ...]:
+    """The method and its baselines, restricted to ``names``.
+
+    Parameters
+    ----------
+    names : iterable of {"shape_prior", "detection", "asm"}
+        "shape_prior" is :class:`medseg.model.ShapePriorSegmenter`; "detection" the same
+        fitted model with ``use_prior=False`` (each landmark at its best candidate, same
+        TPS); "asm" the active shape model of :mod:`evaluation.baselines.asm`.
+    labels : sequence of int
+        Labels forming the structure (their union).
+    n_landmarks : int or None
+        Landmarks per shape when they are computed from the label maps.
+    segmenter_params, asm_params : dict, optional
+        Extra constructor arguments.
+    """
+    names = tuple(names)
+    unknown = [n for n in names if n not in METHOD_NAMES]
+    if unknown or not names:
+        raise MedsegError(
+            f"unknown method(s) {unknown or names!r}: choose among {', '.join(METHOD_NAMES)}"
+        )
+    specs = []
+    seg_variants = {}
+    if "shape_prior" in names:
+        seg_variants["shape_prior"] = {"use_prior": True}
+    if "detection" in names:
+        seg_variants["detection"] = {"use_prior": False}
+    if seg_variants:
+        from medseg.model import ShapePriorSegmenter
+
+        params = {"n_landmarks": n_landmarks, "labels": tuple(labels)}
+        params.update(segmenter_params or {})
+        specs.append(MethodSpec(ShapePriorSegmenter, params, seg_variants))
+    if "asm" in names:
+        from evaluation.baselines import ActiveShapeModel
+
+        params = {"labels": tuple(labels)}
+        params.update(asm_params or {})
+        specs.append(MethodSpec(ActiveShapeModel, params, {"asm": {}}))
+    return tuple(specs)
+
+
+def resolve_methods(
+    methods: Iterable[str | MethodSpec], *, labels: Sequence[int], n_landmarks: int | None
+) -> tuple[MethodSpec, ...]:
+    """Method names and/or :class:`MethodSpec` objects -> specs; variant names must be unique."""
+    methods = list(methods)
+    names = [m for m in methods if isinstance(m, str)]
+    specs = [m for m in methods if isinstance(m, MethodSpec)]
+    if len(names) + len(specs) != len(methods):
+        raise MedsegError("`methods` must hold method names or MethodSpec objects")
+    if names:
+        specs = list(default_methods(names, labels=labels, n_landmarks=n_landmarks)) + specs
+    if not specs:
+        raise MedsegError("`methods` is empty: give at least one method to evaluate")
+    seen: list[str] = [n for s in specs for n in s.names]
+    if len(set(seen)) != len(seen):
+        raise MedsegError(f"method names must be unique, got {seen}")
+    return tuple(specs)

@@ -1,0 +1,286 @@
+"""Cross-validation engine: folds by subject, bad input, CSV rows, resume, parallel runs.
+
+These tests are about the engine, so they use a tiny fake method (intensity threshold +
+mean training landmarks with a seeded jitter) on a tiny generated cohort of balls.
+"""
+
+from __future__ import annotations
+
+import csv
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+from sklearn.utils import check_random_state
+
+from evaluation.crossval import (
+    COLUMNS,
+    check_cohort,
+    fold_seed,
+    make_folds,
+    read_results,
+    run_folds,
+)
+from evaluation.methods import MethodSpec
+from evaluation.perturbation import perturb_case, random_similarity
+from medseg.datasets import Case, Cohort
+from medseg.errors import CohortError, LabelError, MedsegError
+from medseg.io import voxel_to_physical
+
+SIZE = 20
+
+
+def _ball_case(i: int, subject: str, rng: np.random.RandomState) -> Case:
+    radius = rng.uniform(4.0, 6.0)
+    centre_zyx = np.full(3, (SIZE - 1) / 2.0) + rng.uniform(-1.5, 1.5, 3)
+    zyx = np.indices((SIZE,) * 3, dtype=float)
+    inside = ((zyx - centre_zyx[:, None, None, None]) ** 2).sum(0) <= radius**2
+    image = sitk.GetImageFromArray((20.0 + 80.0 * inside).astype(np.float32))
+    image.SetSpacing((1.0, 1.0, 1.5))
+    label = sitk.GetImageFromArray(inside.astype(np.uint8))
+    label.CopyInformation(image)
+    offsets = np.vstack([np.eye(3), -np.eye(3)]) * radius
+    landmarks = voxel_to_physical(image, centre_zyx + offsets)
+    return Case(f"ball_{i:02d}", subject, image, label, landmarks)
+
+
+def tiny_cohort(n_subjects: int = 4, per_subject: int = 2, seed: int = 0) -> Cohort:
+    rng = check_random_state(seed)
+    cases = [
+        _ball_case(s * per_subject + j, f"subj{s}", rng)
+        for s in range(n_subjects)
+        for j in range(per_subject)
+    ]
+    return Cohort(cases=cases, labels={"background": 0, "ball": 1}, name="balls")
+
+
+class _Result:
+    def __init__(self, label, landmarks):
+        self.label, self.landmarks, self.mrf = label, landmarks, None
+
+
+class ThresholdMethod:
+    """Fake method for engine tests: threshold at the training mid-intensity."""
+
+    def __init__(self, *, jitter: float = 0.5, log: str | None = None, random_state=None):
+        self.jitter = jitter
+        self.log = log
+        self.random_state = random_state
+
+    def fit(self, cohort):
+        if self.log:
+            with open(self.log, "a") as fh:
+                fh.write(",".join(sorted(c.case_id for c in cohort)) + "\n")
+        rng = check_random_state(self.random_state)
+        lms = np.stack([c.load_landmarks() for c in cohort])
+        self.landmarks_ = lms.mean(0) + self.jitter * rng.standard_normal(lms.shape[1:])
+        arrays = [sitk.GetArrayViewFromImage(c.load_image()) for c in cohort]
+        self.threshold_ = float(np.mean([(a.min() + a.max()) / 2.0 for a in arrays]))
+        return self
+
+    def segment(self, image, *, offset: float = 0.0):
+        label = sitk.Cast(image > self.threshold_, sitk.sitkUInt8)
+        return _Result(label, self.landmarks_ + offset)
+
+
+def _specs(log=None):
+    return (
+        MethodSpec(
+            ThresholdMethod,
+            {"log": log},
+            {"thresh": {}, "shifted": {"offset": 1.0}},
+        ),
+    )
+
+
+def _by_key(rows):
+    return {(r["method"], r["fold"], r["case"], r["perturbation_deg"]): r for r in rows}
+
+
+# ----------------------------------------------------------------------------- folds
+
+
+@pytest.mark.parametrize("folds", ["loo", 2, 3])
+def test_folds_never_split_a_subject(folds):
+    cohort = tiny_cohort(n_subjects=4, per_subject=2)
+    splits = make_folds(cohort, folds)
+    subjects = cohort.subjects
+    tested = np.concatenate([te for _, te in splits])
+    assert sorted(tested.tolist()) == list(range(len(cohort)))
+    for tr, te in splits:
+        assert not set(subjects[tr]) & set(subjects[te])
+    assert len(splits) == (4 if folds == "loo" else folds)
+
+
+def test_fold_seed_depends_on_seed_and_fold_only():
+    assert fold_seed(0, 3) == fold_seed(0, 3)
+    assert len({fold_seed(0, f) for f in range(10)} | {fold_seed(1, 0)}) == 11
+
+
+# ----------------------------------------------------------------------------- bad input
+
+
+def test_bad_input_is_refused_before_any_work(tmp_path):
+    log = tmp_path / "fits.log"
+    with pytest.raises(CohortError, match="empty"):
+        run_folds(Cohort(cases=[]), _specs(str(log)), tmp_path / "a")
+    one = tiny_cohort(n_subjects=1, per_subject=6)
+    with pytest.raises(CohortError, match="single subject"):
+        run_folds(one, _specs(str(log)), tmp_path / "b")
+    cohort = tiny_cohort(n_subjects=6, per_subject=1)
+    with pytest.raises(LabelError, match=r"\[2\] occur in no case"):
+        run_folds(cohort, _specs(str(log)), tmp_path / "c", labels=(1, 2))
+    with pytest.raises(CohortError, match="only 6 subjects"):
+        run_folds(cohort, _specs(str(log)), tmp_path / "d", folds=7)
+    small = tiny_cohort(n_subjects=3, per_subject=2)
+    with pytest.raises(CohortError, match="would train on 4"):
+        check_cohort(small, labels=(1,), folds=3)
+    with pytest.raises(MedsegError, match="folds"):
+        make_folds(cohort, "kfold")
+    assert not log.exists()
+    assert not any((tmp_path / d / "cases.csv").exists() for d in "abcd")
+
+
+# ----------------------------------------------------------------------------- runs
+
+
+def test_rows_scores_and_perturbation(tmp_path):
+    cohort = tiny_cohort(n_subjects=8, per_subject=1)
+    path = run_folds(cohort, _specs(), tmp_path, folds=4, seed=1, perturbation=(30,))
+    with path.open() as fh:
+        assert tuple(next(csv.reader(fh))) == COLUMNS
+    rows = read_results(path)
+    assert len(rows) == 2 * 8 * 2  # methods x cases x (0, 30 degrees)
+    by = _by_key(rows)
+    for r in rows:
+        if r["perturbation_deg"] == 0:
+            # A clean two-level image thresholded in the middle is the label exactly.
+            assert r["dice"] == 1.0 and r["hd95"] == 0.0 and r["assd"] == 0.0
+            assert r["scale"] == 1.0
+        else:
+            assert r["dice"] > 0.9
+            assert abs(np.log(r["scale"])) == pytest.approx(np.log(1.25) * 30 / 45)
+        assert np.isnan(r["gap"]) and r["seconds"] >= 0
+    # The shifted variant moves every landmark by (1, 1, 1) mm from the same fit.
+    for (method, fold, case, deg), r in by.items():
+        if method == "thresh" and deg == 0:
+            case_ = next(c for c in cohort if c.case_id == case)
+            assert r["landmark_error_mm"] > 0
+            assert r["landmark_error_mm"] != by[("shifted", fold, case, deg)]["landmark_error_mm"]
+            assert r["subject"] == case_.subject
+
+
+def test_resume_recomputes_only_missing_rows(tmp_path):
+    cohort = tiny_cohort(n_subjects=6, per_subject=1)
+    log = tmp_path / "fits.log"
+    full = run_folds(cohort, _specs(str(log)), tmp_path / "full", folds="loo", seed=3)
+    reference = _by_key(read_results(full))
+    assert len(log.read_text().splitlines()) == 6
+
+    # An interrupted run: the first 5 rows (folds 0, 1 and half of fold 2) and a torn line.
+    part = tmp_path / "part"
+    part.mkdir()
+    (part / "run.json").write_text((tmp_path / "full" / "run.json").read_text())
+    lines = full.read_text().splitlines()
+    (part / "cases.csv").write_text("\n".join(lines[:6]) + "\n" + lines[6][:15])
+    log.unlink()
+    run_folds(cohort, _specs(str(log)), part, folds="loo", seed=3)
+    assert len(log.read_text().splitlines()) == 4  # folds 2..5 refitted, 0 and 1 skipped
+    resumed = read_results(part / "cases.csv")
+    assert len(resumed) == len(reference)
+    for key, row in _by_key(resumed).items():
+        for col in COLUMNS:
+            if col not in ("seconds", "fit_seconds"):
+                assert row[col] == reference[key][col] or (
+                    np.isnan(row[col]) and np.isnan(reference[key][col])
+                )
+    # Nothing left to do: no fit at all.
+    log.unlink()
+    run_folds(cohort, _specs(str(log)), part, folds="loo", seed=3)
+    assert not log.exists()
+    with pytest.raises(MedsegError, match="seed"):
+        run_folds(cohort, _specs(str(log)), part, folds="loo", seed=4)
+
+
+def _register_by_value():
+    # Worker processes cannot import this test module: ship the fake method by value
+    # (joblib's loky and dask both pickle with cloudpickle).
+    import cloudpickle
+
+    cloudpickle.register_pickle_by_value(sys.modules[__name__])
+
+
+def _values(path: Path) -> dict:
+    return {
+        k: tuple(
+            None if isinstance(v, float) and np.isnan(v) else v
+            for c, v in r.items()
+            if c not in ("seconds", "fit_seconds")
+        )
+        for k, r in _by_key(read_results(path)).items()
+    }
+
+
+def test_parallel_runs_equal_the_serial_run(tmp_path):
+    _register_by_value()
+    cohort = tiny_cohort(n_subjects=4, per_subject=2)
+    kwargs = {"folds": 4, "seed": 7, "perturbation": (20,)}
+    serial = run_folds(cohort, _specs(), tmp_path / "serial", **kwargs)
+    local = run_folds(cohort, _specs(), tmp_path / "joblib", n_jobs=2, **kwargs)
+    assert _values(local) == _values(serial)
+
+    from dask.distributed import LocalCluster
+
+    with LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None
+    ) as cluster:
+        dask_csv = run_folds(
+            cohort, _specs(), tmp_path / "dask", scheduler=cluster.scheduler_address, **kwargs
+        )
+    assert _values(dask_csv) == _values(serial)
+    other = run_folds(cohort, _specs(), tmp_path / "other", folds=4, seed=8, perturbation=(20,))
+    assert _values(other) != _values(serial)
+
+
+def test_unreachable_scheduler_is_a_clear_error(tmp_path, monkeypatch):
+    monkeypatch.setattr("evaluation.crossval.DASK_CONNECT_TIMEOUT", "1s")
+    cohort = tiny_cohort(n_subjects=6, per_subject=1)
+    with pytest.raises(MedsegError, match="Dask scheduler"):
+        run_folds(cohort, _specs(), tmp_path, scheduler="tcp://127.0.0.1:9")
+
+
+# ----------------------------------------------------------------------------- perturbation
+
+
+@pytest.mark.parametrize("angle", [0.0, 20.0, 45.0])
+def test_random_similarity_has_the_requested_size(angle):
+    change = random_similarity(angle, random_state=0)
+    cos = (np.trace(change.rotation) - 1.0) / 2.0
+    assert np.rad2deg(np.arccos(np.clip(cos, -1, 1))) == pytest.approx(angle, abs=1e-6)
+    assert abs(np.log(change.scale)) == pytest.approx(np.log(1.25) * angle / 45.0)
+    np.testing.assert_allclose(change.rotation @ change.rotation.T, np.eye(3), atol=1e-12)
+
+
+def test_perturbed_case_keeps_grid_and_moves_landmarks_with_the_label():
+    case = tiny_cohort(n_subjects=1, per_subject=1, seed=5)[0]
+    image, label = case.load_image(), case.load_label()
+    change = random_similarity(40.0, random_state=2)
+    moved_image, moved_label, moved_lm = perturb_case(image, label, case.landmarks, change)
+    for a in (moved_image, moved_label):
+        assert a.GetSize() == image.GetSize() and a.GetSpacing() == image.GetSpacing()
+        assert a.GetOrigin() == image.GetOrigin() and a.GetDirection() == image.GetDirection()
+    assert moved_label.GetPixelID() == sitk.sitkUInt8
+    assert set(np.unique(sitk.GetArrayViewFromImage(moved_label))) <= {0, 1}
+    # Volume scales with scale^3; the ball's landmarks stay on the moved ball's boundary.
+    v0 = sitk.GetArrayViewFromImage(label).sum()
+    v1 = sitk.GetArrayViewFromImage(moved_label).sum()
+    assert v1 / v0 == pytest.approx(change.scale**3, rel=0.08)
+    fg = voxel_to_physical(moved_label, np.argwhere(sitk.GetArrayViewFromImage(moved_label)))
+    centre = fg.mean(0)
+    np.testing.assert_allclose(moved_lm.mean(0), centre, atol=0.3)
+    radius = np.linalg.norm(case.landmarks - case.landmarks.mean(0), axis=1)
+    np.testing.assert_allclose(
+        np.linalg.norm(moved_lm - centre, axis=1), change.scale * radius, atol=0.3
+    )
