@@ -81,6 +81,12 @@ def bench_cohort(root: Path) -> None:
         except MedsegError as exc:
             failures.append(f"{path.name}: {exc}")
     elapsed = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    for path in images:
+        sitk.ReadImage(str(path))
+        sitk.ReadImage(str(folder / "labelsTr" / path.name))
+    plain = time.perf_counter() - t0
+    print(f"hippocampus: plain sitk.ReadImage of the same pairs: {plain:.2f}s")
     print(
         f"hippocampus: {len(images)} image+label pairs read and checked in {elapsed:.2f}s "
         f"({1000 * elapsed / len(images):.1f} ms/case); {len(failures)} failures; "
