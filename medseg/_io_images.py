@@ -187,6 +187,8 @@ def _from_nibabel(img: nib.spatialimages.SpatialImage, name: str) -> sitk.Image:
         raise ImageGeometryError(
             f"{name}: image is {data.ndim}D (shape {data.shape}); medseg needs a 3D image"
         )
+    if not data.dtype.isnative:  # big-endian files: SimpleITK takes native order only
+        data = data.astype(data.dtype.newbyteorder("="))
     if data.dtype == bool:
         data = data.astype(np.uint8)
     elif data.dtype == np.float16:

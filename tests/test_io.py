@@ -177,6 +177,14 @@ def test_nibabel_conversion_agrees_with_itk_nifti_reader(tmp_path):
     )
 
 
+def test_big_endian_nifti_through_nibabel(tmp_path):
+    data = np.arange(4 * 5 * 6, dtype=">i2").reshape(4, 5, 6)
+    nimg = nib.Nifti1Image(data, np.diag([0.5, 1.0, 2.0, 1.0]))
+    image = mio.read_image(nimg)
+    assert image.GetPixelID() == sitk.sitkInt16
+    np.testing.assert_array_equal(sitk.GetArrayViewFromImage(image), data.transpose(2, 1, 0))
+
+
 def test_nifti2_and_as_input_type(tmp_path):
     image = make_image()
     n2 = nib.Nifti2Image(np.asanyarray(mio.to_nibabel(image).dataobj), mio.to_nibabel(image).affine)
