@@ -249,8 +249,9 @@ def to_nibabel(image: sitk.Image, *, like: Any = None) -> nib.Nifti1Image:
     data = sitk.GetArrayFromImage(image).transpose(2, 1, 0)
     cls = nib.Nifti2Image if isinstance(like, nib.Nifti2Image) else nib.Nifti1Image
     out = cls(data, affine, dtype=data.dtype)
-    out.set_qform(affine, code=1)
-    out.set_sform(affine, code=1)
+    # header fields are float32 (NIfTI); the in-memory affine stays exact float64
+    out.set_qform(affine, code=1, update_affine=False)
+    out.set_sform(affine, code=1, update_affine=False)
     units = ("mm", "sec")
     if isinstance(like, nib.Nifti1Image | nib.Nifti2Image):
         units = like.header.get_xyzt_units()

@@ -260,6 +260,20 @@ def test_voxel_physical_inverse_on_random_oblique_geometries(geometry, seed):
     assert mio.physical_to_voxel(image, world[0]).shape == (3,)
 
 
+@settings(max_examples=40, deadline=None)
+@given(geometry=geometries())
+def test_nibabel_round_trip_on_random_oblique_geometries(geometry):
+    angles, spacing, origin, mirror = geometry
+    image = make_image(size=(3, 4, 5), spacing=spacing, origin=origin, angles=angles, mirror=mirror)
+    nimg = mio.to_nibabel(image)
+    ijk = np.array([[0, 0, 0], [2, 3, 4], [1, 0, 3]])
+    ras = (nimg.affine @ np.c_[ijk, np.ones(3)].T).T[:, :3]
+    lps = mio.voxel_to_physical(image, ijk[:, ::-1])
+    np.testing.assert_allclose(ras * FLIP, lps, atol=1e-9 * (1 + np.abs(lps).max()))
+    back = mio.read_image(nimg)
+    assert_same_geometry(back, image, atol=1e-9 * (1 + np.abs(origin).max()))
+
+
 # --------------------------------------------------------------------------- landmarks
 
 POINTS = np.array([[-10.5, 20.25, 3.0], [1.0 / 3.0, -7.0, 120.125], [0.0, 0.0, -5.5]])
@@ -271,6 +285,21 @@ def test_landmark_round_trip(tmp_path, suffix):
     points, labels = mio.read_landmarks(path, return_labels=True)
     np.testing.assert_array_equal(points, POINTS)
     assert labels == ["a", "b", "c"]
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    points=st.lists(
+        st.tuples(*[st.floats(-1e4, 1e4, allow_subnormal=False)] * 3), min_size=1, max_size=8
+    ),
+    suffix=st.sampled_from([".csv", ".fcsv", ".mrk.json"]),
+)
+def test_landmark_round_trip_is_exact_for_any_floats(points, suffix):
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        path = mio.write_landmarks(points, Path(tmp) / f"p{suffix}")
+        np.testing.assert_array_equal(mio.read_landmarks(path), np.asarray(points))
 
 
 def test_written_slicer_files_declare_lps(tmp_path):
