@@ -14,6 +14,22 @@ Conventions (see the design notes):
   millimetres, ``(x, y, z)`` order, in the image's world frame (ITK / LPS).
 * Voxel arrays are SimpleITK's ``(z, y, x)`` numpy views. Convert between array indices and
   physical points only with :func:`voxel_to_physical` and :func:`physical_to_voxel`.
+* nibabel affines are RAS+, ITK is LPS: the conversion (x and y negated) happens only in
+  :func:`read_image` (nibabel in) and :func:`to_nibabel` (nibabel out).
+
+What is checked, beyond SimpleITK: a truncated NIfTI file (ITK reads it without complaint),
+NIfTI-2 files (this ITK cannot read them; nibabel does), sheared affines (ITK would silently
+orthogonalise them), non-finite voxels, label maps off their image's grid.
+
+Examples
+--------
+>>> from medseg import io
+>>> image = io.read_image("case_0000.nii.gz")  # doctest: +SKIP
+>>> label = io.read_label("case.nii.gz", reference=image)  # doctest: +SKIP
+>>> mask = io.select_labels(label, (1, 2))  # doctest: +SKIP
+>>> io.write_image(mask, "out/case.nii.gz", like=image)  # doctest: +SKIP
+>>> points = io.read_landmarks("case.mrk.json")  # (N, 3) mm, LPS  # doctest: +SKIP
+>>> zyx = io.physical_to_voxel(image, points)  # doctest: +SKIP
 """
 
 from __future__ import annotations
