@@ -33,7 +33,7 @@ from evaluation.metrics import landmark_errors, score_segmentation
 from evaluation.perturbation import perturb_case, random_similarity
 from evaluation.references import fold_landmarks
 from medseg.errors import CohortError, LabelError, MedsegError
-from medseg.io import atomic_write, read_image, select_labels
+from medseg.io import atomic_write, read_image, select_labels, write_image
 
 __all__ = [
     "COLUMNS",
@@ -43,6 +43,7 @@ __all__ = [
     "run_folds",
     "read_results",
     "fold_seed",
+    "prediction_path",
 ]
 
 #: Columns of the per-case CSV, in order.
@@ -265,6 +266,7 @@ class FoldTask:
     n_landmarks: int | None
     angles: tuple[float, ...]
     todo: frozenset
+    predictions_dir: str | None = None
 
 
 def _score(result, mask, reference_landmarks, image) -> dict:
@@ -286,6 +288,17 @@ def _score(result, mask, reference_landmarks, image) -> dict:
         "landmark_error_vox": lm_vox,
         "gap": gap,
     }
+
+
+def prediction_path(folder: str | os.PathLike, method: str, case_id: str) -> Path:
+    """Where the label map predicted by ``method`` for ``case_id`` is written."""
+    return Path(folder) / method / f"{case_id}.nii.gz"
+
+
+def _save_prediction(result, image, folder: Path, method: str, case_id: str) -> None:
+    path = prediction_path(folder, method, case_id)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_image(read_image(result.label), path, like=image)
 
 
 def run_fold(task: FoldTask, on_row: Callable[[dict], None] | None = None) -> list[dict]:
@@ -348,6 +361,8 @@ def run_fold(task: FoldTask, on_row: Callable[[dict], None] | None = None) -> li
                 "seconds": seconds,
                 "fit_seconds": fit_seconds,
             }
+            if task.predictions_dir is not None and angle == 0:
+                _save_prediction(result, image, Path(task.predictions_dir), name, case.case_id)
             rows.append(row)
             if on_row is not None:
                 on_row(row)
@@ -387,6 +402,7 @@ def run_folds(
     perturbation: Sequence[float] = (),
     n_jobs: int = 1,
     scheduler: str | None = None,
+    save_predictions: bool = True,
     progress: bool = False,
 ) -> Path:
     """Run (or resume) the cross-validation; one CSV row per (method, case, perturbation).
@@ -412,6 +428,10 @@ def run_folds(
     scheduler : str, optional
         Address of a running Dask scheduler (``"tcp://host:port"``); folds are submitted to
         it (``n_jobs`` is then ignored). The cohort's files must be readable by the workers.
+    save_predictions : bool
+        Write each unperturbed prediction to ``predictions/<method>/<case>.nii.gz`` (on the
+        test image's grid); the report draws its overlays from them. With a Dask cluster,
+        ``output_dir`` must then be on a file system the workers share.
     progress : bool
         A progress bar over folds.
 
@@ -462,6 +482,7 @@ def run_folds(
                     n_landmarks=n_landmarks,
                     angles=angles,
                     todo=todo,
+                    predictions_dir=str(folder / "predictions") if save_predictions else None,
                 )
             )
     bar = tqdm(

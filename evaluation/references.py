@@ -8,9 +8,9 @@ hippocampus does not. There, per fold:
   of the fold (the segmenter, the detection baseline and the ASM) trains on the same
   landmarks;
 * a test case's reference landmarks are the template's landmarks carried onto its label map
-  by :func:`transfer_landmarks`: a similarity (principal axes + ICP over the boundary points),
-  a non-rigid coherent-point-drift warp of the template boundary onto the test boundary, and
-  a final snap of each landmark onto the nearest test boundary point.
+  by :func:`transfer_landmarks`: a similarity (principal axes + ICP over the boundary
+  points), a non-rigid coherent-point-drift warp of the template boundary onto the test
+  boundary, and a projection of each landmark onto the test boundary surface.
 
 The landmark error on real data is therefore measured against a registration-derived
 reference, not against expert landmarks: it is a consistency measure and is reported as such.
@@ -19,11 +19,13 @@ reference, not against expert landmarks: it is a consistency measure and is repo
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 
 import numpy as np
-import SimpleITK as sitk
+import pyvista as pv
 from numpy.typing import ArrayLike
 from scipy.spatial import cKDTree
+from sklearn.utils import check_random_state
 
 from medseg._registration import (
     cpd_nonrigid,
@@ -31,54 +33,63 @@ from medseg._registration import (
     icp_similarity,
     principal_axes_candidates,
 )
-from medseg.errors import LabelError, MedsegError
-from medseg.io import select_labels, voxel_to_physical
+from medseg.correspondence import label_surface, landmarks_from_labels
 
-__all__ = ["boundary_points", "transfer_landmarks", "fold_landmarks"]
-
-
-def boundary_points(mask: sitk.Image) -> np.ndarray:
-    """Physical centres (mm) of the boundary voxels of a binary mask, ``(M, 3)``."""
-    contour = sitk.LabelContour(sitk.Cast(mask > 0, sitk.sitkUInt8), fullyConnected=True)
-    zyx = np.argwhere(sitk.GetArrayViewFromImage(contour) > 0)
-    if not len(zyx):
-        raise LabelError("the mask is empty: no boundary to put landmarks on")
-    return voxel_to_physical(mask, zyx)
+__all__ = ["transfer_landmarks", "fold_landmarks"]
 
 
 def transfer_landmarks(
-    template_mask: sitk.Image,
+    template_surface: tuple[np.ndarray, np.ndarray],
     template_landmarks: ArrayLike,
-    mask: sitk.Image,
+    label_map,
     *,
+    labels: Sequence[int] = (1,),
     n_points: int = 600,
-    beta_mm: float = 6.0,
-    lam: float = 2.0,
+    beta: float = 0.8,
+    lam: float = 1.0,
+    outlier_weight: float = 0.02,
+    random_state=None,
 ) -> np.ndarray:
     """Carry the template's landmarks onto another structure's boundary.
 
+    The same steps as :func:`medseg.correspondence.landmarks_from_labels` uses for its
+    training cases (that module has no public function for one new label map): boundary
+    meshes, similarity by principal axes + ICP, non-rigid coherent point drift in a frame
+    normalised to unit RMS radius, projection onto the target's triangles.
+
     Parameters
     ----------
-    template_mask : 3D SimpleITK image
-        Binary mask of the template shape.
+    template_surface : ((V, 3) float array, (F, 3) int array)
+        Template boundary, mm (``CorrespondenceResult.reference_surface``).
     template_landmarks : (N, 3) float array, mm
         Landmarks on the template's boundary.
-    mask : 3D SimpleITK image
-        Binary mask of the structure to put the landmarks on (any geometry).
+    label_map : SimpleITK image or path
+        Label map of the structure to put the landmarks on (any geometry).
+    labels : sequence of int
+        Labels forming the structure.
     n_points : int, default 600
         Boundary points of each shape used by the registration (farthest-point sample).
-    beta_mm, lam : float
-        Smoothness of the coherent-point-drift warp (kernel width in mm, weight).
+    beta, lam, outlier_weight : float
+        Coherent point drift kernel width (normalised units), regularisation weight,
+        outlier weight; the defaults of ``landmarks_from_labels``.
+    random_state : int, RandomState or None
 
     Returns
     -------
     landmarks : (N, 3) float array, mm
-        On boundary voxel centres of ``mask``, in its physical space.
+        On the boundary surface of ``label_map``, in its physical space.
     """
-    src_all = boundary_points(template_mask)
-    dst_all = boundary_points(mask)
-    src = src_all[farthest_point_sampling(src_all, min(n_points, len(src_all)))]
-    dst = dst_all[farthest_point_sampling(dst_all, min(n_points, len(dst_all)))]
+    rng = check_random_state(random_state)
+    src_vertices = np.asarray(template_surface[0], dtype=float)
+    dst_vertices, dst_faces = label_surface(label_map, labels=tuple(labels), keep_largest=True)
+    src = src_vertices[farthest_point_sampling(src_vertices, min(n_points, len(src_vertices)))]
+    dst = dst_vertices[
+        farthest_point_sampling(
+            dst_vertices,
+            min(n_points, len(dst_vertices)),
+            start=int(rng.randint(len(dst_vertices))),
+        )
+    ]
     tree = cKDTree(dst)
     best = None
     for init in principal_axes_candidates(src, dst):
@@ -86,10 +97,21 @@ def transfer_landmarks(
         if best is None or err < best[1]:
             best = (tf, err)
     similarity = best[0]
-    cpd = cpd_nonrigid(similarity(src), dst, beta=beta_mm, lam=lam)
-    moved = cpd.warp(similarity(np.asarray(template_landmarks, dtype=float)))
-    _, nearest = cKDTree(dst_all).query(moved)
-    return dst_all[nearest]
+    centre = dst.mean(axis=0)
+    radius = float(np.sqrt(((dst - centre) ** 2).sum(axis=1).mean()))
+    cpd = cpd_nonrigid(
+        (similarity(src) - centre) / radius,
+        (dst - centre) / radius,
+        beta=beta,
+        lam=lam,
+        w=outlier_weight,
+    )
+    moved = cpd.warp((similarity(np.asarray(template_landmarks, float)) - centre) / radius)
+    moved = moved * radius + centre
+    cells = np.hstack([np.full((len(dst_faces), 1), 3), dst_faces]).ravel()
+    mesh = pv.PolyData(dst_vertices, cells)
+    _, closest = mesh.find_closest_cell(moved, return_closest_point=True)
+    return np.asarray(closest, dtype=float).reshape(-1, 3)
 
 
 def fold_landmarks(train, test, *, labels, n_landmarks: int | None, seed: int):
@@ -114,28 +136,33 @@ def fold_landmarks(train, test, *, labels, n_landmarks: int | None, seed: int):
     given = [case.load_landmarks() for case in train]
     if all(lm is not None for lm in given):
         return train, [case.load_landmarks() for case in test]
-    try:
-        from medseg.correspondence import landmarks_from_labels
-    except ImportError as exc:  # pragma: no cover - until medseg.correspondence lands
-        raise MedsegError(
-            "this cohort has no landmarks and medseg.correspondence is not available to "
-            "compute them from the label maps"
-        ) from exc
-    masks = [select_labels(case.load_label(), labels) for case in train]
-    corr = landmarks_from_labels(masks, n_landmarks=n_landmarks, labels=(1,), random_state=seed)
+    corr = landmarks_from_labels(
+        [case.load_label() for case in train],
+        n_landmarks=n_landmarks,
+        labels=tuple(labels),
+        random_state=seed,
+        keep_largest=True,
+        case_ids=[case.case_id for case in train],
+    )
     keep = ~np.asarray(corr.failed, dtype=bool)
     landmarks = np.asarray(corr.landmarks, dtype=float)
     cases = [
         dataclasses.replace(case, landmarks=landmarks[i]) for i, case in enumerate(train) if keep[i]
     ]
-    ref = int(corr.reference_index)
-    template_mask, template_landmarks = masks[ref], landmarks[ref]
+    template_landmarks = landmarks[int(corr.reference_index)]
     references = []
     for case in test:
         own = case.load_landmarks()
         if own is not None and own.shape == template_landmarks.shape:
             references.append(own)
         else:
-            mask = select_labels(case.load_label(), labels)
-            references.append(transfer_landmarks(template_mask, template_landmarks, mask))
+            references.append(
+                transfer_landmarks(
+                    corr.reference_surface,
+                    template_landmarks,
+                    case.load_label(),
+                    labels=labels,
+                    random_state=seed,
+                )
+            )
     return dataclasses.replace(train, cases=cases), references
