@@ -50,13 +50,14 @@ def check_not_protected(path: PathLike, protect: Iterable[PathLike] = ()) -> Non
 def atomic_write(path: PathLike, *, protect: Iterable[PathLike] = ()) -> Iterator[Path]:
     """Context manager that yields a temporary path to write, then moves it onto ``path``.
 
-    The temporary path is ``<folder>/.tmp-<random>-<name>/<name>``: it sits in the target
+    The temporary path is ``<folder>/.tmp-<random>-<name>.part/<name>``: it sits in the target
     folder (so the final :func:`os.replace` is a rename on one file system, atomic on POSIX)
     and keeps the real file name and suffix, so writers that choose their format from the
     name (SimpleITK, nibabel) behave exactly as for ``path``. Companion files the writer puts
     beside it (a MetaImage ``.mhd`` writes ``name.raw`` / ``name.zraw`` too) are moved as
     well, data files first and the named file last. If the body raises, the temporary folder
-    and everything in it are removed and nothing at ``path`` changes.
+    and everything in it are removed and nothing at ``path`` changes. (Only a killed process
+    can leave a ``.tmp-*.part`` folder behind; its name matches no image or landmark glob.)
 
     Parameters
     ----------
@@ -92,7 +93,7 @@ def atomic_write(path: PathLike, *, protect: Iterable[PathLike] = ()) -> Iterato
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise InputFileError(f"cannot create the output folder {str(folder)!r}: {exc}") from exc
-    tmp_dir = folder / f".tmp-{secrets.token_hex(6)}-{target.name}"
+    tmp_dir = folder / f".tmp-{secrets.token_hex(6)}-{target.name}.part"
     try:
         tmp_dir.mkdir()
     except OSError as exc:

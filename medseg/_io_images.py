@@ -716,7 +716,7 @@ def write_dicom_series(
         must be right-handed (det > 0): a DICOM series has its slice normal fixed by the row
         and column directions, so a mirrored image would read back re-ordered.
     folder : path-like
-        A new (or empty) folder; it is written as ``.tmp-<random>-<name>`` beside it, then
+        A new (or empty) folder; it is written as ``.tmp-<random>-<name>.part`` beside it, then
         renamed. Files are ``slice_0000.dcm``, ... in slice order.
     protect : iterable of path-like
         Inputs that must not be replaced (e.g. the folder the image was read from).
@@ -749,7 +749,7 @@ def write_dicom_series(
             "(mirrored); write NIfTI or NRRD instead, or flip the image"
         )
     folder.parent.mkdir(parents=True, exist_ok=True)
-    tmp = folder.parent / f".tmp-{secrets.token_hex(6)}-{folder.name}"
+    tmp = folder.parent / f".tmp-{secrets.token_hex(6)}-{folder.name}.part"
     tmp.mkdir()
     try:
         study, series, frame = _new_uid(), _new_uid(), _new_uid()

@@ -621,6 +621,7 @@ def test_atomic_write_cleans_up_on_any_exception(tmp_path):
     with pytest.raises(KeyError):
         with mio.atomic_write(tmp_path / "a.csv") as tmp:
             assert tmp.parent.parent == tmp_path and tmp.name == "a.csv"
+            assert not tmp.parent.name.endswith(".csv")  # a crash leftover matches no glob
             tmp.write_text("half")
             raise KeyError("boom")
     assert listing(tmp_path) == []
