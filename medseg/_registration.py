@@ -32,6 +32,7 @@ __all__ = [
     "similarity_fit",
     "principal_axes_candidates",
     "icp_similarity",
+    "icp_affine",
     "cpd_nonrigid",
     "CPDResult",
     "farthest_point_sampling",
@@ -179,6 +180,42 @@ def icp_similarity(
     return tf, float(err)
 
 
+def icp_affine(
+    src: np.ndarray,
+    dst: np.ndarray,
+    *,
+    dst_tree: cKDTree | None = None,
+    max_iter: int = 30,
+    tol: float = 1e-6,
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """Symmetric ICP with a general affine map, starting from the identity.
+
+    Returns
+    -------
+    matrix : (3, 3) float array
+    translation : (3,) float array
+        ``moved = src @ matrix.T + translation``.
+    error : float
+        Symmetric mean closest-point distance.
+    """
+    tree_d = dst_tree if dst_tree is not None else cKDTree(dst)
+    mat, vec = np.eye(3), np.zeros(3)
+    prev, err = np.inf, np.inf
+    for _ in range(max_iter):
+        moved = src @ mat.T + vec
+        d1, i1 = tree_d.query(moved)
+        d2, i2 = cKDTree(moved).query(dst)
+        err = 0.5 * (d1.mean() + d2.mean())
+        if prev - err < tol * max(err, 1e-12):
+            break
+        prev = err
+        a = np.concatenate([src, src[i2]])
+        b = np.concatenate([dst[i1], dst])
+        sol, *_ = np.linalg.lstsq(np.c_[a, np.ones(len(a))], b, rcond=None)
+        mat, vec = sol[:3].T, sol[3]
+    return mat, vec, float(err)
+
+
 @dataclass(frozen=True)
 class CPDResult:
     """Outcome of :func:`cpd_nonrigid`: ``warp(points)`` moves any points of the source frame."""
@@ -197,9 +234,14 @@ class CPDResult:
         step = 4096
         for s in range(0, len(points), step):
             p = points[s : s + step]
-            d2 = ((p[:, None, :] - self._y[None, :, :]) ** 2).sum(-1)
-            out[s : s + step] = p + np.exp(-d2 / (2.0 * self._beta**2)) @ self._w
+            out[s : s + step] = p + np.exp(-_sqdist(p, self._y) / (2.0 * self._beta**2)) @ self._w
         return out
+
+
+def _sqdist(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Squared Euclidean distances (len(a), len(b)) by one matrix product."""
+    d2 = (a * a).sum(1)[:, None] + (b * b).sum(1)[None, :] - 2.0 * (a @ b.T)
+    return np.maximum(d2, 0.0, out=d2)
 
 
 def cpd_nonrigid(
@@ -209,13 +251,16 @@ def cpd_nonrigid(
     beta: float = 2.0,
     lam: float = 2.0,
     w: float = 0.0,
-    max_iter: int = 100,
-    tol: float = 1e-5,
+    max_iter: int = 150,
+    tol: float = 1e-4,
+    rank: int | None = None,
 ) -> CPDResult:
     """Coherent point drift, non-rigid: move the source ``y`` onto the target ``x``.
 
     ``y`` are the Gaussian mixture centroids, displaced by ``G W`` with the Gaussian kernel
-    ``G_ij = exp(-|y_i - y_j|^2 / (2 beta^2))``; the EM steps follow [2]_ (fig. 4).
+    ``G_ij = exp(-|y_i - y_j|^2 / (2 beta^2))``; the EM steps follow [2]_ (fig. 4). With
+    ``rank`` the kernel is replaced by its leading eigenpairs and the M-step solved by the
+    Woodbury identity, as in the fast variant of [2]_ (section 6).
 
     Parameters
     ----------
@@ -231,20 +276,29 @@ def cpd_nonrigid(
         Weight of the uniform outlier component.
     max_iter, tol
         EM stops when the relative change of ``sigma2`` falls below ``tol``.
+    rank : int, optional
+        Low-rank kernel approximation (None: exact).
     """
     y = np.asarray(y, float)
     x = np.asarray(x, float)
     m, d = y.shape
     n = x.shape[0]
-    g = np.exp(-((y[:, None, :] - y[None, :, :]) ** 2).sum(-1) / (2.0 * beta**2))
+    g = np.exp(-_sqdist(y, y) / (2.0 * beta**2))
+    if rank is not None and rank < m:
+        evals, evecs = np.linalg.eigh(g)
+        q = evecs[:, -rank:]
+        lam_k = np.maximum(evals[-rank:], 1e-12)
+    else:
+        q = None
     wmat = np.zeros((m, d))
     ty = y.copy()
-    sigma2 = float(((x[None, :, :] - y[:, None, :]) ** 2).sum() / (d * m * n))
+    xx = (x * x).sum(1)
+    sigma2 = float(_sqdist(y, x).sum() / (d * m * n))
     sigma2 = max(sigma2, 1e-10)
     it = 0
     for it in range(1, max_iter + 1):  # noqa: B007
-        d2 = ((x[None, :, :] - ty[:, None, :]) ** 2).sum(-1)  # (M, N)
-        p = np.exp(-d2 / (2.0 * sigma2))
+        d2 = (ty * ty).sum(1)[:, None] + xx[None, :] - 2.0 * (ty @ x.T)
+        p = np.exp(-np.maximum(d2, 0.0) / (2.0 * sigma2))
         c = (2.0 * np.pi * sigma2) ** (d / 2.0) * w / (1.0 - w) * m / n
         den = p.sum(axis=0) + c
         p /= np.maximum(den, np.finfo(float).tiny)[None, :]
@@ -254,17 +308,19 @@ def cpd_nonrigid(
         np_ = pt1.sum()
         # (G + lam sigma2 diag(P1)^-1) W = diag(P1)^-1 PX - Y, multiplied by diag(P1) so
         # that points with no matches (P1 ~ 0) do not make the system singular.
-        a = g * p1[:, None] + lam * sigma2 * np.eye(m)
         rhs = px - p1[:, None] * y
-        wmat = np.linalg.solve(a, rhs)
-        ty = y + g @ wmat
+        s = lam * sigma2
+        if q is None:
+            wmat = np.linalg.solve(g * p1[:, None] + s * np.eye(m), rhs)
+            ty = y + g @ wmat
+        else:
+            # Woodbury: (s I + dP1 Q L Q^T)^-1 = (I - dP1 Q (s L^-1 + Q^T dP1 Q)^-1 Q^T) / s
+            small = np.diag(s / lam_k) + q.T @ (p1[:, None] * q)
+            wmat = (rhs - p1[:, None] * (q @ np.linalg.solve(small, q.T @ rhs))) / s
+            ty = y + g @ wmat
         prev = sigma2
         sigma2 = float(
-            (
-                (pt1 * (x**2).sum(1)).sum()
-                - 2.0 * np.einsum("ij,ij->", px, ty)
-                + (p1 * (ty**2).sum(1)).sum()
-            )
+            ((pt1 * xx).sum() - 2.0 * np.einsum("ij,ij->", px, ty) + (p1 * (ty**2).sum(1)).sum())
             / (np_ * d)
         )
         sigma2 = max(sigma2, 1e-10)
