@@ -19,7 +19,7 @@ What a user of ASM would run as a baseline, written from the paper:
    landmark along its normal to the best-fitting profile position among ``2(m-k)+1``
    offsets, then fits pose and shape parameters to the suggested points (similarity
    alignment, tangent projection, clamped parameters). A level ends when 90 % of the
-   landmarks moved by at most half the search range, or after ``max_iter`` iterations.
+   landmarks moved by at most one profile step, or after ``max_iter`` iterations.
 
 The label map comes from the same thin-plate-spline reconstruction as the segmenter
 (:func:`medseg.reconstruction.warp_mask`) with the training case closest to the mean shape
@@ -284,9 +284,9 @@ class ActiveShapeModel:
         Fraction of the shape variance the retained modes explain.
     limit : float, default 3.0
         Shape parameters are clamped to ``+-limit * sqrt(lambda)``.
-    profile_half : int, default 4
+    profile_half : int, default 3
         ``k``: the profile model has ``2k+1`` samples.
-    search_half : int, default 8
+    search_half : int, default 6
         ``m > k``: the search profile has ``2m+1`` samples, i.e. ``2(m-k)+1`` offsets.
     step_mm : float, default 1.0
         Profile sample spacing at the finest level (doubles per coarser level).
@@ -322,8 +322,8 @@ class ActiveShapeModel:
         labels: tuple[int, ...] = (1,),
         variance: float = 0.98,
         limit: float = 3.0,
-        profile_half: int = 4,
-        search_half: int = 8,
+        profile_half: int = 3,
+        search_half: int = 6,
         step_mm: float = 1.0,
         n_levels: int = 3,
         max_iter: int = 20,
@@ -342,6 +342,8 @@ class ActiveShapeModel:
         self.random_state = random_state
 
     # -- training ---------------------------------------------------------------------------
+
+    _converged_shift = 1  # profile steps; a level ends when 90 % of moves are this small
 
     def _level_sigma_step(self, level: int) -> tuple[float, float]:
         step = self.step_mm * 2.0**level
@@ -479,7 +481,7 @@ class ActiveShapeModel:
                 best = shifts[np.argmin(cost, axis=1)]
                 y = x + (best * step)[:, None] * normals
                 s, rot, t, b = self._fit_to_points(y, b)
-                if np.mean(np.abs(best) <= (m - k) / 2.0) >= 0.9:
+                if np.mean(np.abs(best) <= self._converged_shift) >= 0.9:
                     break
             n_iter.append(it)
         landmarks = s * self._instance(b) @ rot.T + t
