@@ -284,9 +284,9 @@ def _check_nifti_complete(path: Path) -> nib.spatialimages.SpatialImage:
         nimg = nib.load(path)
         header = nimg.header
         shape = header.get_data_shape()
-        need = (
-            int(header.get_data_offset()) + int(np.prod(shape)) * header.get_data_dtype().itemsize
-        )
+        # nibabel resets the header's vox_offset after loading; the proxy keeps the real one
+        offset = int(getattr(nimg.dataobj, "offset", header.get_data_offset()))
+        need = offset + int(np.prod(shape)) * header.get_data_dtype().itemsize
     except Exception as exc:  # nibabel raises many types for a bad header
         raise ImageFormatError(
             f"{str(path)!r}: not a readable NIfTI file (corrupt or truncated header: {exc})"

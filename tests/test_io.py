@@ -455,6 +455,17 @@ def test_truncated_file(tmp_path, suffix):
     assert "Exception thrown" not in str(info.value)  # no raw ITK message
 
 
+@pytest.mark.parametrize("suffix", [".nii", ".nii.gz"])
+def test_nifti_missing_only_the_last_voxel(tmp_path, suffix):
+    path = mio.write_image(make_image(dtype=np.int16), tmp_path / f"last{suffix}")
+    if suffix == ".nii":
+        path.write_bytes(path.read_bytes()[:-2])
+    else:
+        path.write_bytes(gzip.compress(gzip.decompress(path.read_bytes())[:-2]))
+    with pytest.raises(ImageFormatError, match=f"last{suffix}.*truncated"):
+        mio.read_image(path)
+
+
 def test_corrupt_gzip_and_header(tmp_path):
     path = mio.write_image(make_image(), tmp_path / "crc.nii.gz")
     data = bytearray(path.read_bytes())
