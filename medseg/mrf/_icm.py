@@ -47,7 +47,10 @@ def icm_improve(
         for i in range(mrf.n_variables):
             cost = conditional_costs(mrf, inc, x, i)
             best = int(np.argmin(cost))
-            if cost[best] < cost[x[i]] - 1e-12 * (1.0 + abs(cost[x[i]])):
+            current = cost[x[i]]
+            if cost[best] < current and (
+                np.isinf(current) or cost[best] < current - 1e-12 * (1.0 + abs(current))
+            ):
                 x[i] = best
                 changed = True
         if not changed:

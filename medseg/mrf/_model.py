@@ -226,7 +226,7 @@ class MRF:
             for c, t in enumerate(tables_k):
                 tables[(c,) + tuple(slice(0, d) for d in t.shape)] = t
             self.groups[k] = FactorGroup(scopes, tables)
-        self._check_duplicates([f for _, f in sorted(by_order.items())])
+        self._check_duplicates(list(self.groups.values()))
 
     @classmethod
     def from_triplets(
