@@ -23,9 +23,36 @@ from medseg.matching._geometry import (
     vertex_areas,
     vertex_normals,
 )
+from medseg.matching._matcher import (
+    PreparedSurface,
+    SurfaceMatch,
+    match_surfaces,
+    prepare_surface,
+    spectral_refine,
+)
 from medseg.matching._mesh import MESH_SUFFIXES, check_mesh, read_mesh, write_mesh
+from medseg.matching._potentials import (
+    gaussian_map_potentials,
+    mobius_potentials,
+    singleton_potentials,
+    triplet_potentials,
+)
+from medseg.matching._solver import MatchingProblem, SolveResult, matching_energy, solve_matching
 
 __all__ = [
+    "MatchingProblem",
+    "PreparedSurface",
+    "SolveResult",
+    "SurfaceMatch",
+    "gaussian_map_potentials",
+    "match_surfaces",
+    "matching_energy",
+    "mobius_potentials",
+    "prepare_surface",
+    "singleton_potentials",
+    "solve_matching",
+    "spectral_refine",
+    "triplet_potentials",
     "CANONICAL_TRIPLET",
     "MESH_SUFFIXES",
     "GeodesicSolver",

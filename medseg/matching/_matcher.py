@@ -1,0 +1,516 @@
+"""Dense surface matching in two stages (Zeng et al., CVPR 2010, Sec. 4).
+
+1. Sparse stage: farthest-point samples of A are matched to farthest-point samples of B
+   with the third-order energy (HKS singleton costs, Möbius + Gaussian-map triplet costs).
+2. Dense stage: the Möbius maps of the best matched triplets send every vertex of A to a
+   vertex of B; these votes are clustered to their modes, which become the dense candidates;
+   the dense energy (vote and descriptor singleton costs, one third-order clique per face
+   of A) is minimised by the same dual decomposition.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from itertools import combinations
+
+import numpy as np
+from numpy.typing import ArrayLike
+from scipy.sparse.linalg import splu
+from scipy.spatial import cKDTree
+from sklearn.utils import check_random_state
+
+from medseg.errors import ProblemDefinitionError
+from medseg.matching._conformal import conformal_flatten, to_riemann_sphere
+from medseg.matching._geometry import (
+    GeodesicSolver,
+    cotangent_laplacian,
+    face_areas,
+    farthest_point_sampling,
+    heat_kernel_signature,
+    laplacian_eigenpairs,
+    vertex_areas,
+    vertex_normals,
+)
+from medseg.matching._mesh import check_mesh
+from medseg.matching._potentials import (
+    _canonical_unchecked,
+    mobius_potentials,
+    singleton_potentials,
+    triplet_potentials,
+)
+from medseg.matching._solver import MatchingProblem, SolveResult, solve_matching
+
+__all__ = [
+    "PreparedSurface",
+    "prepare_surface",
+    "SurfaceMatch",
+    "match_surfaces",
+    "spectral_refine",
+]
+
+# diffusion times of the HKS on a unit-area surface
+_HKS_TIMES = np.geomspace(5e-3, 1.0, 16)
+
+
+@dataclass
+class PreparedSurface:
+    """Everything the matcher computes once per surface (see :func:`prepare_surface`).
+
+    Attributes
+    ----------
+    vertices : (V, 3) float array
+        Centred and scaled to unit total area (so units do not matter).
+    faces : (F, 3) int array, outward oriented.
+    scale : float
+        ``sqrt(area)`` of the input, in its units.
+    z : (V,) complex array
+        Conformal flattening.
+    normals : (V, 3) float array
+        Smoothed outward unit normals.
+    descriptor : (V, D) float array
+        Log heat kernel signature at fixed times on the unit-area surface.
+    evals, evecs : (E,), (V, E) float arrays
+        Laplace-Beltrami eigenpairs of the unit-area surface.
+    samples : (S,) int array
+        Geodesic farthest-point samples, in picking order.
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    scale: float
+    z: np.ndarray
+    normals: np.ndarray
+    descriptor: np.ndarray
+    evals: np.ndarray
+    evecs: np.ndarray
+    samples: np.ndarray
+    geodesic: GeodesicSolver = field(repr=False)
+
+
+def prepare_surface(
+    vertices: ArrayLike,
+    faces: ArrayLike,
+    *,
+    name: str = "mesh",
+    n_samples: int = 120,
+    n_eigen: int = 80,
+    random_state=None,
+) -> PreparedSurface:
+    """Check a mesh and compute its descriptors, flattening, normals and samples.
+
+    Parameters
+    ----------
+    vertices : (V, 3) float array
+    faces : (F, 3) int array
+    name : str
+        Used in error messages.
+    n_samples : int
+        Farthest-point samples (the sparse points are the first of them).
+    n_eigen : int
+        Laplace-Beltrami eigenpairs for the HKS.
+    random_state : int, RandomState or None
+
+    Returns
+    -------
+    PreparedSurface
+    """
+    v, f = check_mesh(vertices, faces, name=name)
+    scale = float(np.sqrt(face_areas(v, f).sum()))
+    v = (v - v.mean(axis=0)) / scale
+    evals, evecs = laplacian_eigenpairs(v, f, n_eigen=n_eigen)
+    hks = heat_kernel_signature(evals, evecs, times=_HKS_TIMES)
+    descriptor = np.log(np.maximum(hks, 1e-12))
+    # smoothed normals: normals of the surface after a short implicit heat flow
+    lap, mass = cotangent_laplacian(v, f)
+    smooth = splu((mass + 1e-3 * lap).tocsc()).solve(mass @ v)
+    normals = vertex_normals(smooth, f)
+    geo = GeodesicSolver(v, f)
+    samples = farthest_point_sampling(v, f, n_samples, geodesic=geo, random_state=random_state)
+    z = conformal_flatten(v, f)
+    return PreparedSurface(v, f, scale, z, normals, descriptor, evals, evecs, samples, geo)
+
+
+@dataclass
+class SurfaceMatch:
+    """Result of :func:`match_surfaces`.
+
+    Attributes
+    ----------
+    forward : (V_A,) int array
+        0-based index of the vertex of B matched to each vertex of A.
+    inverse : (V_B,) int array
+        For each vertex of B, the vertex of A whose image is nearest to it on B.
+    sparse_pairs : (P, 2) int array
+        Vertex pairs (A, B) matched by the sparse stage.
+    sparse : SolveResult
+        Solver outcome of the sparse stage (energy, lower bound, gap, ...).
+    dense : SolveResult
+        Solver outcome of the dense stage.
+    one_to_one_fraction : float
+        Fraction of vertices of A matched by the dense solver itself (one-to-one); the rest
+        took their best dense candidate.
+    timings : dict
+        Seconds per step.
+    """
+
+    forward: np.ndarray
+    inverse: np.ndarray
+    sparse_pairs: np.ndarray
+    sparse: SolveResult
+    dense: SolveResult
+    one_to_one_fraction: float
+    timings: dict
+
+
+def _sparse_stage(a, b, *, n_sparse, n_targets, n_candidates, n_triplets, n_align, opts, rng):
+    src = a.samples[:n_sparse]
+    tgt = b.samples[:n_targets]
+    d = ((a.descriptor[src][:, None, :] - b.descriptor[tgt][None, :, :]) ** 2).sum(-1)
+    k = min(n_candidates, len(tgt))
+    cand = np.argsort(d, axis=1)[:, :k]  # columns of tgt
+    unary = singleton_potentials(a.descriptor[src], b.descriptor[tgt], cand)
+    unary = opts["lambda_descriptor"] * unary / max(np.median(unary), 1e-12)
+    all_trip = np.asarray(list(combinations(range(len(src)), 3)))
+    pick = rng.choice(len(all_trip), size=min(n_triplets, len(all_trip)), replace=False)
+    cliques = all_trip[np.sort(pick)]
+    grid = np.stack(np.meshgrid(*(np.arange(k),) * 3, indexing="ij"), -1).reshape(-1, 3)
+    # labels_col[t, c, p] = cand[cliques[t, p], grid[c, p]]
+    labels_col = np.stack([cand[cliques[:, p]][:, grid[:, p]] for p in range(3)], axis=-1)
+    costs = triplet_potentials(
+        a.z,
+        b.z,
+        a.normals,
+        b.normals,
+        src[cliques],
+        tgt[labels_col],
+        samples_a=a.samples[:n_align],
+        samples_b=b.samples[:n_align],
+        lambda_mobius=opts["lambda_mobius"],
+        lambda_gauss=opts["lambda_gauss"],
+        delta=opts["delta"],
+    ).reshape(len(cliques), k, k, k)
+    problem = MatchingProblem(
+        unary=unary,
+        candidates=cand,
+        cliques=cliques,
+        clique_costs=costs,
+        n_targets=len(tgt),
+        unmatched_cost=float(np.max(unary)),
+        unmatched_clique_cost=float(np.quantile(costs, 0.5)),
+    )
+    res = solve_matching(problem, max_iter=opts["max_iter"], progress=opts["progress"])
+    ok = res.targets >= 0
+    pairs = np.column_stack([src[ok], tgt[res.targets[ok]]])
+    return pairs, res
+
+
+def _vote_triplets(a, b, pairs, *, n_vote, n_align, opts, rng):
+    """The ``n_vote`` matched triplets whose Möbius maps align the surfaces best."""
+    idx = np.asarray(list(combinations(range(len(pairs)), 3)))
+    if len(idx) > 1500:
+        idx = idx[np.sort(rng.choice(len(idx), 1500, replace=False))]
+    cost = mobius_potentials(
+        a.z,
+        b.z,
+        pairs[idx, 0],
+        pairs[idx, 1][:, None, :],
+        samples_a=a.samples[:n_align],
+        samples_b=b.samples[:n_align],
+        delta=opts["delta"],
+    )[:, 0]
+    order = np.argsort(cost)[:n_vote]
+    return idx[order], cost[order]
+
+
+def _votes(a, b, pairs, trip, cost, *, sigma_local=0.15, sigma_error=0.05):
+    """Every vertex of A sent to B by each triplet's Möbius map.
+
+    Returns (V_A, T) targets and (V_A, T) weights. A conformal map fixed by one triplet is
+    accurate only in part of the surface, so each vote is weighted by how well the same map
+    carries the matched sparse points near that vertex onto their partners (geodesic
+    Gaussian window of width ``sigma_local`` on A, error scale ``sigma_error`` on B, both in
+    units of sqrt(area)), in the spirit of blended intrinsic maps (Kim et al. 2011).
+    """
+    m_a, _ = _canonical_unchecked(a.z[pairs[trip, 0]])
+    m_b, _ = _canonical_unchecked(b.z[pairs[trip, 1]])
+    targets = np.empty((len(a.z), len(trip)), dtype=np.int64)
+    for t in range(len(trip)):
+        sa = to_riemann_sphere(a.z, m_a[t])
+        sb = to_riemann_sphere(b.z, m_b[t])
+        _, targets[:, t] = cKDTree(sb).query(sa)
+    # (P, T): how far each triplet's map sends each sparse point from its partner
+    miss = np.linalg.norm(
+        b.vertices[targets[pairs[:, 0]]] - b.vertices[pairs[:, 1]][:, None], axis=-1
+    )
+    good = np.exp(-0.5 * (miss / sigma_error) ** 2)
+    dist = np.stack([a.geodesic.distance(s) for s in pairs[:, 0]], axis=1)  # (V_A, P)
+    window = np.exp(-0.5 * (dist / sigma_local) ** 2) + 1e-12
+    weights = (window @ good) / window.sum(axis=1, keepdims=True)
+    return targets, weights + 1e-9
+
+
+def _modes(b, votes, weights, *, n_modes, radius, chunk=256):
+    """Weighted mean-shift-like modes of each vertex's votes, as B vertices; (V_A, n_modes)
+    targets and their vote densities (0 for missing modes)."""
+    n, t = votes.shape
+    pos = b.vertices[votes]  # (V_A, T, 3)
+    modes = np.zeros((n, n_modes), dtype=np.int64)
+    dens = np.zeros((n, n_modes))
+    tree = cKDTree(b.vertices)
+    for s in range(0, n, chunk):
+        p = pos[s : s + chunk]
+        d2 = ((p[:, :, None, :] - p[:, None, :, :]) ** 2).sum(-1)
+        wv = weights[s : s + chunk]  # (c, T)
+        kern = np.exp(-d2 / (2 * radius**2)) * wv[:, None, :]
+        density = kern.sum(-1) / wv.sum(axis=1, keepdims=True)  # (c, T)
+        alive = np.ones_like(density, dtype=bool)
+        for m in range(n_modes):
+            score = np.where(alive, density, -1.0)
+            j = np.argmax(score, axis=1)
+            rows = np.arange(len(p))
+            valid = score[rows, j] > 0
+            # mode centre: kernel-weighted mean of the votes around the peak
+            w = kern[rows, j] * alive
+            centre = (w[..., None] * p).sum(1) / np.maximum(w.sum(1), 1e-300)[:, None]
+            _, near = tree.query(centre)
+            modes[s : s + chunk, m] = np.where(valid, near, modes[s : s + chunk, 0])
+            dens[s : s + chunk, m] = np.where(valid, density[rows, j], 0.0)
+            alive &= d2[rows, j] > (2 * radius) ** 2
+    return modes, dens
+
+
+def _dense_stage(a, b, modes, dens, *, opts):
+    n, k = modes.shape
+    # duplicate modes (fewer distinct modes than k) are padded with inf cost
+    dup = np.zeros_like(modes, dtype=bool)
+    for m in range(1, k):
+        dup[:, m] = (modes[:, :m] == modes[:, m : m + 1]).any(axis=1) | (dens[:, m] <= 0)
+    desc = singleton_potentials(a.descriptor, b.descriptor, modes)
+    desc = desc / max(np.median(desc), 1e-12)
+    unary = -np.log(np.maximum(dens, 1e-6)) + opts["lambda_descriptor"] * desc
+    unary = np.where(dup, np.inf, unary)
+    f = a.faces
+    labels = modes[f]  # (F, 3, k)
+    q = b.vertices
+    p = a.vertices
+    h = np.sqrt(face_areas(p, f).mean() * 4 / np.sqrt(3))  # mean edge length
+    cost = np.zeros((len(f), k, k, k))
+    ii, jj, kk = np.meshgrid(np.arange(k), np.arange(k), np.arange(k), indexing="ij")
+    qi = q[labels[:, 0][:, ii]]  # (F, k, k, k, 3)
+    qj = q[labels[:, 1][:, jj]]
+    qk = q[labels[:, 2][:, kk]]
+    for (u, pu), (w, pw) in (
+        ((qi, p[f[:, 0]]), (qj, p[f[:, 1]])),
+        ((qj, p[f[:, 1]]), (qk, p[f[:, 2]])),
+        ((qk, p[f[:, 2]]), (qi, p[f[:, 0]])),
+    ):
+        la = np.linalg.norm(pu - pw, axis=1)[:, None, None, None]
+        lb = np.linalg.norm(u - w, axis=-1)
+        cost += ((lb - la) / h) ** 2
+    # orientation of the image triangle against B's normals: mirror flips cost lambda_gauss
+    nrm = np.cross(qj - qi, qk - qi)
+    nb = (b.normals[labels[:, 0][:, ii]] + b.normals[labels[:, 1][:, jj]]) + b.normals[
+        labels[:, 2][:, kk]
+    ]
+    flipped = np.einsum("...c,...c->...", nrm, nb) < 0
+    cost = opts["lambda_mobius"] * np.minimum(cost, 50.0) + opts["lambda_gauss"] * flipped
+    problem = MatchingProblem(
+        unary=unary,
+        candidates=modes,
+        cliques=f,
+        clique_costs=cost,
+        n_targets=len(q),
+        unmatched_cost=float(np.quantile(unary[np.isfinite(unary)], 0.95)),
+        unmatched_clique_cost=float(np.quantile(cost, 0.9)),
+    )
+    res = solve_matching(problem, max_iter=opts["dense_max_iter"], progress=opts["progress"])
+    best = np.argmin(unary, axis=1)
+    x = np.where(res.x < k, res.x, best)
+    forward = modes[np.arange(n), x]
+    return forward, res, float(np.mean(res.x < k))
+
+
+def spectral_refine(
+    forward: ArrayLike,
+    evecs_a: ArrayLike,
+    mass_a: ArrayLike,
+    evecs_b: ArrayLike,
+    *,
+    k_start: int = 8,
+    k_step: int = 4,
+) -> np.ndarray:
+    """Refine a vertex map by spectral upsampling of its functional map (ZoomOut).
+
+    Parameters
+    ----------
+    forward : (V_A,) int array
+        Vertex of B matched to each vertex of A.
+    evecs_a : (V_A, E) float array
+        Mass-orthonormal Laplace-Beltrami eigenvectors of A.
+    mass_a : (V_A,) float array
+        Vertex areas of A.
+    evecs_b : (V_B, E) float array
+    k_start, k_step : int
+        Spectral size of the first functional map, and its increment per iteration, up to E.
+
+    Returns
+    -------
+    forward : (V_A,) int array
+
+    References
+    ----------
+    .. [1] Melzi, S., Ren, J., Rodolà, E., Sharma, A., Wonka, P. & Ovsjanikov, M. "ZoomOut:
+       spectral upsampling for efficient shape correspondence." ACM TOG 38(6), 2019.
+       doi:10.1145/3355089.3356524
+    """
+    fwd = np.asarray(forward)
+    pa = np.asarray(evecs_a, float)
+    pb = np.asarray(evecs_b, float)
+    mass = np.asarray(mass_a, float)
+    n_eig = min(pa.shape[1], pb.shape[1])
+    for k in range(k_start, n_eig + 1, k_step):
+        # C maps coefficients on B to coefficients on A: Pi Phi_B ~ Phi_A C
+        c = pa[:, :k].T @ (mass[:, None] * pb[fwd, :k])
+        _, fwd = cKDTree(pb[:, :k]).query(pa[:, :k] @ c)
+    return np.asarray(fwd, dtype=np.int64)
+
+
+def match_surfaces(
+    vertices_a: ArrayLike,
+    faces_a: ArrayLike,
+    vertices_b: ArrayLike,
+    faces_b: ArrayLike,
+    *,
+    n_sparse: int = 30,
+    n_sparse_targets: int = 45,
+    n_candidates: int = 5,
+    n_triplets: int = 120,
+    n_align: int = 150,
+    n_vote: int = 100,
+    n_modes: int = 3,
+    mode_radius: float = 0.05,
+    lambda_descriptor: float = 1.0,
+    lambda_mobius: float = 1.0,
+    lambda_gauss: float = 1.0,
+    delta: float = 0.2,
+    max_iter: int = 100,
+    dense_max_iter: int = 30,
+    refine: bool = True,
+    random_state=None,
+    progress: bool = False,
+) -> SurfaceMatch:
+    """Dense vertex-to-vertex correspondence from surface A to surface B.
+
+    Parameters
+    ----------
+    vertices_a : (V_A, 3) float array
+        Surface A; any unit (each surface is scaled to unit area internally, so A and B may
+        even be in different units).
+    faces_a : (F_A, 3) int array
+        Genus-0 triangle mesh (closed, or with holes); see :func:`check_mesh`.
+    vertices_b, faces_b : arrays
+        Surface B.
+    n_sparse : int
+        Farthest-point samples of A matched in the sparse stage.
+    n_sparse_targets : int
+        Farthest-point samples of B they may be matched to.
+    n_candidates : int
+        Candidates per sparse point (nearest in HKS space).
+    n_triplets : int
+        Third-order cliques sampled among the sparse points.
+    n_align : int
+        Samples per surface used to measure a Möbius alignment (mutually closest points).
+    n_vote : int
+        Best matched triplets whose Möbius maps vote for the dense candidates.
+    n_modes : int
+        Dense candidates per vertex (modes of its votes).
+    mode_radius : float
+        Kernel radius of the vote clustering, in units of ``sqrt(area)``.
+    lambda_descriptor, lambda_mobius, lambda_gauss : float
+        Weights of the singleton, Möbius (dense stage: edge-length distortion) and
+        Gaussian-map (orientation) terms.
+    delta : float
+        Chordal distance on the Riemann sphere under which points pair (Möbius term).
+    max_iter, dense_max_iter : int
+        Dual-decomposition iterations of the sparse and dense stages.
+    refine : bool
+        Polish the dense map with :func:`spectral_refine` (ZoomOut), an addition to the
+        paper's pipeline. Default True.
+    random_state : int, RandomState or None
+        Farthest-point seeds and the clique sampling.
+    progress : bool
+        Show tqdm progress of the solvers.
+
+    Returns
+    -------
+    SurfaceMatch
+
+    References
+    ----------
+    .. [1] Zeng, Y., Wang, C., Wang, Y., Gu, X., Samaras, D. & Paragios, N. "Dense non-rigid
+       surface registration using high-order graph matching." CVPR 2010.
+       doi:10.1109/CVPR.2010.5540189
+    .. [2] Lipman, Y. & Funkhouser, T. "Möbius voting for surface correspondence." ACM TOG
+       28(3), 2009. doi:10.1145/1531326.1531378
+    """
+    if n_sparse < 4 or n_sparse_targets < n_sparse or n_candidates < 1:
+        raise ProblemDefinitionError(
+            "need n_sparse >= 4, n_sparse_targets >= n_sparse and n_candidates >= 1."
+        )
+    rng = check_random_state(random_state)
+    opts = {
+        "lambda_descriptor": lambda_descriptor,
+        "lambda_mobius": lambda_mobius,
+        "lambda_gauss": lambda_gauss,
+        "delta": delta,
+        "max_iter": max_iter,
+        "dense_max_iter": dense_max_iter,
+        "progress": progress,
+    }
+    timings = {}
+    t0 = time.perf_counter()
+    n_s = max(n_align, n_sparse_targets)
+    a = prepare_surface(vertices_a, faces_a, name="surface A", n_samples=n_s, random_state=rng)
+    b = prepare_surface(vertices_b, faces_b, name="surface B", n_samples=n_s, random_state=rng)
+    timings["prepare"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    pairs, sparse_res = _sparse_stage(
+        a,
+        b,
+        n_sparse=n_sparse,
+        n_targets=n_sparse_targets,
+        n_candidates=n_candidates,
+        n_triplets=n_triplets,
+        n_align=n_align,
+        opts=opts,
+        rng=rng,
+    )
+    timings["sparse"] = time.perf_counter() - t0
+    if len(pairs) < 3:
+        raise ProblemDefinitionError(
+            f"the sparse stage matched only {len(pairs)} points; the surfaces are too "
+            "different to be matched (or increase n_candidates)."
+        )
+    t0 = time.perf_counter()
+    trip, cost = _vote_triplets(a, b, pairs, n_vote=n_vote, n_align=n_align, opts=opts, rng=rng)
+    votes, weights = _votes(a, b, pairs, trip, cost)
+    modes, dens = _modes(b, votes, weights, n_modes=n_modes, radius=mode_radius)
+    timings["candidates"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    forward, dense_res, frac = _dense_stage(a, b, modes, dens, opts=opts)
+    timings["dense"] = time.perf_counter() - t0
+    if refine:
+        t0 = time.perf_counter()
+        forward = spectral_refine(forward, a.evecs, vertex_areas(a.vertices, a.faces), b.evecs)
+        timings["refine"] = time.perf_counter() - t0
+    _, inv = cKDTree(b.vertices[forward]).query(b.vertices)
+    return SurfaceMatch(
+        forward=forward,
+        inverse=np.asarray(inv, dtype=np.int64),
+        sparse_pairs=pairs,
+        sparse=sparse_res,
+        dense=dense_res,
+        one_to_one_fraction=frac,
+        timings=timings,
+    )

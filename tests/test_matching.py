@@ -1,0 +1,334 @@
+"""Tests of the surface matcher (issue 8) on small generated meshes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import pyvista as pv
+from scipy.spatial.transform import Rotation
+
+from medseg.errors import MeshError, ProblemDefinitionError
+from medseg.matching import (
+    CANONICAL_TRIPLET,
+    GeodesicSolver,
+    MatchingProblem,
+    apply_mobius,
+    check_mesh,
+    compose_mobius,
+    conformal_flatten,
+    face_areas,
+    gaussian_map_potentials,
+    invert_mobius,
+    match_surfaces,
+    matching_energy,
+    mobius_from_triplets,
+    mobius_to_canonical,
+    prepare_surface,
+    read_mesh,
+    singleton_potentials,
+    solve_matching,
+    to_riemann_sphere,
+    triplet_potentials,
+    write_mesh,
+)
+from medseg.matching._geometry import _corner_angles
+
+
+def _sphere(nsub: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    s = pv.Icosphere(nsub=nsub)
+    return np.asarray(s.points, float), s.faces.reshape(-1, 4)[:, 1:].astype(np.int64)
+
+
+def _bumpy(nsub: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    """An elongated sphere with bumps at irregular places: no symmetry, genus 0."""
+    v, f = _sphere(nsub)
+    rng = np.random.RandomState(3)
+    centres = rng.normal(size=(5, 3))
+    centres /= np.linalg.norm(centres, axis=1, keepdims=True)
+    heights = np.array([0.5, 0.35, 0.25, 0.4, 0.3])
+    r = 1.0 + (heights * np.exp(-((v @ centres.T - 1) ** 2) / 0.02)).sum(axis=1)
+    v = v * r[:, None] * np.array([2.0, 1.0, 0.8])
+    return v, f
+
+
+def _bend(v: np.ndarray, angle: float) -> np.ndarray:
+    """Bend along x around the z axis: isometric on the mid-plane, near-isometric around."""
+    length = np.ptp(v[:, 0])
+    radius = length / angle
+    theta = v[:, 0] / radius
+    rr = radius + v[:, 1]
+    return np.column_stack([rr * np.sin(theta), rr * np.cos(theta) - radius, v[:, 2]])
+
+
+# --- Möbius transforms ----------------------------------------------------------------------
+
+
+def test_mobius_maps_triplets_to_canonical_exactly():
+    rng = np.random.RandomState(0)
+    z = rng.normal(size=(50, 3)) + 1j * rng.normal(size=(50, 3))
+    m = mobius_to_canonical(z)
+    w = apply_mobius(m, z)
+    np.testing.assert_allclose(w, np.broadcast_to(CANONICAL_TRIPLET, w.shape), atol=1e-10)
+    det = m[:, 0, 0] * m[:, 1, 1] - m[:, 0, 1] * m[:, 1, 0]
+    np.testing.assert_allclose(det, 1.0, atol=1e-10)
+
+
+def test_mobius_between_triplets_composes_and_inverts():
+    rng = np.random.RandomState(1)
+    s, t, u = (rng.normal(size=3) + 1j * rng.normal(size=3) for _ in range(3))
+    m_st = mobius_from_triplets(s, t)
+    m_tu = mobius_from_triplets(t, u)
+    np.testing.assert_allclose(apply_mobius(m_st, s), t, atol=1e-10)
+    both = compose_mobius(m_tu, m_st)
+    np.testing.assert_allclose(apply_mobius(both, s), u, atol=1e-10)
+    pts = rng.normal(size=20) + 1j * rng.normal(size=20)
+    np.testing.assert_allclose(
+        apply_mobius(both, pts), apply_mobius(m_tu, apply_mobius(m_st, pts)), rtol=1e-9
+    )
+    np.testing.assert_allclose(apply_mobius(invert_mobius(m_st), apply_mobius(m_st, pts)), pts)
+
+    # Möbius transforms preserve cross-ratios
+    def cross(z):
+        return (z[0] - z[2]) * (z[1] - z[3]) / ((z[0] - z[3]) * (z[1] - z[2]))
+
+    np.testing.assert_allclose(cross(apply_mobius(m_st, pts[:4])), cross(pts[:4]), rtol=1e-9)
+
+
+def test_mobius_rejects_coinciding_points():
+    with pytest.raises(ProblemDefinitionError, match="coinciding"):
+        mobius_from_triplets([0, 1, 1], [0, 1, 2])
+
+
+# --- conformal flattening -------------------------------------------------------------------
+
+
+def _flattening_angle_error(nsub: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per-face max angle error (degrees), angular distance to the puncture, and z."""
+    v, f = check_mesh(*_sphere(nsub))
+    z = conformal_flatten(v, f)
+    flat = np.column_stack([z.real, z.imag, np.zeros(len(z))])
+    err = np.degrees(np.abs(_corner_angles(v, f) - _corner_angles(flat, f))).max(axis=1)
+    c = v[f].mean(axis=1)
+    c /= np.linalg.norm(c, axis=1, keepdims=True)
+    zf = z[f]
+    signed = np.imag(np.conj(zf[:, 1] - zf[:, 0]) * (zf[:, 2] - zf[:, 0]))
+    puncture = c[np.argmin(signed)]  # the punctured face is the only flipped one
+    far = np.degrees(np.arccos(np.clip(c @ puncture, -1, 1)))
+    return err, far, signed
+
+
+def test_flattening_of_sphere_preserves_angles():
+    err, far, signed = _flattening_angle_error(4)
+    away = far > 60  # the puncture's neighbourhood is stretched to infinity
+    assert np.median(err[away]) < 2.5
+    assert np.quantile(err[away], 0.9) < 5.0
+    # orientation preserved: every triangle but the punctured one keeps its orientation
+    assert (signed < 0).sum() <= 1
+    # discrete conformality converges: halving the edge length roughly halves the error
+    err3, far3, _ = _flattening_angle_error(3)
+    assert np.median(err[away]) < 0.65 * np.median(err3[far3 > 60])
+
+
+def test_flattening_of_sphere_is_stereographic_up_to_mobius():
+    v, f = check_mesh(*_sphere(4))
+    z = conformal_flatten(v, f)
+    p = v / np.linalg.norm(v, axis=1, keepdims=True)
+    north = p[:, 2] > 1 - 1e-9
+    with np.errstate(divide="ignore", invalid="ignore"):
+        # projection from the north pole, conjugated to preserve the outward orientation
+        stereo = np.where(north, 1e12, np.conj((p[:, 0] + 1j * p[:, 1]) / (1 - p[:, 2])))
+    idx = np.array([10, 200, 1500])
+    for s, expected_fit in ((stereo, True), (np.conj(stereo), False)):
+        m = mobius_from_triplets(s[idx], z[idx])
+        chordal = np.linalg.norm(to_riemann_sphere(s, m) - to_riemann_sphere(z), axis=1)
+        # the orientation-reversing projection is not a Möbius image of the flattening
+        assert (np.median(chordal) < 0.03) == expected_fit
+
+
+# --- mesh checks ----------------------------------------------------------------------------
+
+
+def test_mesh_roundtrip_all_formats(tmp_path):
+    v, f = check_mesh(*_bumpy(2))
+    for suffix in (".off", ".ply", ".stl", ".vtk", ".obj"):
+        path = tmp_path / f"m{suffix}"
+        write_mesh(path, v, f)
+        v2, f2 = read_mesh(path)
+        v2, f2 = check_mesh(v2, f2)
+        assert len(f2) == len(f)
+        if suffix != ".stl":  # STL stores triangle soups; the reader merges points
+            np.testing.assert_allclose(v2, v, rtol=1e-6, atol=1e-6)
+        np.testing.assert_allclose(face_areas(v2, f2).sum(), face_areas(v, f).sum(), rtol=1e-5)
+
+
+def test_bad_meshes_raise_mesh_error(tmp_path):
+    v, f = _sphere(2)
+    nan = v.copy()
+    nan[5] = np.nan
+    with pytest.raises(MeshError, match="NaN"):
+        check_mesh(nan, f)
+    with pytest.raises(MeshError, match="face indices"):
+        check_mesh(v, np.vstack([f, [0, 1, len(v)]]))
+    degenerate = f.copy()
+    degenerate[0] = [degenerate[0, 0], degenerate[0, 0], degenerate[0, 1]]
+    with pytest.raises(MeshError, match="degenerate"):
+        check_mesh(v, degenerate)
+    flat_v = v.copy()
+    a, b, c = f[0]
+    flat_v[c] = 0.5 * (flat_v[a] + flat_v[b])  # zero-area triangle
+    with pytest.raises(MeshError, match="degenerate"):
+        check_mesh(flat_v, f)
+    with pytest.raises(MeshError, match="non-manifold"):
+        extra = len(v)
+        check_mesh(np.vstack([v, v[f[0]].mean(0) * 1.5]), np.vstack([f, [f[0, 0], f[0, 1], extra]]))
+    with pytest.raises(MeshError, match="connected components"):
+        check_mesh(np.vstack([v, v + 5.0]), np.vstack([f, f + len(v)]))
+    flipped = f.copy()
+    flipped[3] = flipped[3, ::-1]
+    with pytest.raises(MeshError, match="oriented"):
+        check_mesh(v, flipped)
+    torus = pv.ParametricTorus(ringradius=1.0, crosssectionradius=0.3).triangulate().clean()
+    tf = torus.faces.reshape(-1, 4)[:, 1:]
+    with pytest.raises(MeshError, match="genus 1"):
+        check_mesh(np.asarray(torus.points), tf)
+    with pytest.raises(MeshError, match="unreferenced|belong to no face"):
+        check_mesh(np.vstack([v, [9.0, 9.0, 9.0]]), f)
+    bad = tmp_path / "bad.off"
+    bad.write_text("OFF\n3 1 0\n0 0 0\n1 0 0\n")
+    with pytest.raises(MeshError, match="malformed"):
+        read_mesh(bad)
+
+
+def test_inward_mesh_is_reoriented_and_holes_are_accepted():
+    v, f = _sphere(2)
+    _, f_out = check_mesh(v, f[:, ::-1])  # inward normals: repaired by reversing faces
+    np.testing.assert_array_equal(f_out, f)
+    # a sphere with one face removed is a disk (genus 0 with a hole): accepted and flattened
+    v2, f2 = check_mesh(v, f[1:])
+    z = conformal_flatten(v2, f2)
+    assert np.all(np.isfinite(z)) and len(z) == len(v)
+
+
+# --- potentials -----------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def bumpy_pair():
+    v, f = _bumpy(3)
+    rot = Rotation.from_euler("xyz", [30, -50, 70], degrees=True).as_matrix()
+    moved = 2.5 * v @ rot.T + np.array([10.0, -4.0, 3.0])  # rigid motion and other units
+    a = prepare_surface(v, f, n_samples=60, random_state=0)
+    b = prepare_surface(moved, f, n_samples=60, random_state=0)
+    return v, f, a, b
+
+
+def test_potentials_invariant_to_rigid_motion_and_scale(bumpy_pair):
+    _, _, a, b = bumpy_pair
+    rng = np.random.RandomState(0)
+    cand = rng.randint(0, len(a.vertices), size=(40, 4))
+    np.testing.assert_allclose(
+        singleton_potentials(a.descriptor[:40], a.descriptor, cand),
+        singleton_potentials(a.descriptor[:40], b.descriptor, cand),
+        atol=1e-6,
+    )
+    trip = rng.choice(len(a.vertices), size=(30, 3))
+    labels = rng.choice(len(a.vertices), size=(30, 6, 3))
+    labels[:, 0] = trip  # the true labels
+    kw = {"samples_a": a.samples, "samples_b": a.samples}
+    ref = triplet_potentials(a.z, a.z, a.normals, a.normals, trip, labels, **kw)
+    moved = triplet_potentials(a.z, b.z, a.normals, b.normals, trip, labels, **kw)
+    np.testing.assert_allclose(moved, ref, atol=1e-6)
+    # the true labels cost (almost) nothing, random ones cost more
+    assert np.median(moved[:, 0]) < 0.05
+    assert np.median(moved[:, 1:]) > 10 * max(np.median(moved[:, 0]), 1e-3)
+
+
+def test_gaussian_map_term_rejects_mirror_flips(bumpy_pair):
+    v, f, a, _ = bumpy_pair
+    mirrored = v * np.array([-1.0, 1.0, 1.0])
+    m = prepare_surface(mirrored, f, n_samples=10, random_state=0)  # faces re-oriented
+    rng = np.random.RandomState(1)
+    trip = a.samples[rng.choice(60, size=(200, 3))]
+    same = trip[:, None, :]
+    rigid = gaussian_map_potentials(
+        a.normals, a.normals @ Rotation.random(random_state=2).as_matrix().T, trip, same
+    )
+    mirror = gaussian_map_potentials(a.normals, m.normals, trip, same)
+    assert rigid.sum() == 0
+    det = np.abs(np.linalg.det(a.normals[trip]))
+    assert np.all(mirror[det > 0.1, 0] == 1.0)
+    assert mirror.mean() > 0.5
+
+
+# --- solver ---------------------------------------------------------------------------------
+
+
+def test_solver_finds_optimum_of_small_problem_and_bounds_it():
+    rng = np.random.RandomState(0)
+    n, k = 6, 3
+    cand = np.stack([rng.choice(8, size=k, replace=False) for _ in range(n)])
+    unary = rng.uniform(0, 1, size=(n, k))
+    cliques = np.array([[0, 1, 2], [2, 3, 4], [3, 4, 5], [0, 2, 5]])
+    costs = rng.uniform(0, 2, size=(len(cliques), k, k, k))
+    prob = MatchingProblem(
+        unary, cand, cliques, costs, 8, unmatched_cost=5.0, unmatched_clique_cost=2.0
+    )
+    res = solve_matching(prob, max_iter=300)
+    # brute force over all labellings that respect one-to-one
+    best = np.inf
+    for x in np.ndindex(*(k + 1,) * n):
+        t = [cand[i, xi] for i, xi in enumerate(x) if xi < k]
+        if len(set(t)) == len(t):
+            best = min(best, matching_energy(prob, np.array(x)))
+    assert res.lower_bound <= best + 1e-9
+    assert res.energy >= best - 1e-9
+    assert res.energy <= best + 0.5
+    used = res.targets[res.targets >= 0]
+    assert len(np.unique(used)) == len(used)  # one-to-one
+    assert np.isclose(matching_energy(prob, res.x), res.energy)
+
+
+def test_solver_rejects_malformed_problem():
+    prob = MatchingProblem(
+        np.zeros((3, 2)),
+        np.array([[0, 1], [1, 2], [2, 9]]),
+        np.zeros((0, 3), int),
+        np.zeros((0, 2, 2, 2)),
+        4,
+        1.0,
+        1.0,
+    )
+    with pytest.raises(ProblemDefinitionError, match="n_targets"):
+        solve_matching(prob)
+
+
+# --- the whole matcher ----------------------------------------------------------------------
+
+
+def test_matcher_recovers_isometric_bend():
+    v, f = _bumpy(3)
+    bent = _bend(v, np.pi / 2)
+    rot = Rotation.from_euler("z", 40, degrees=True).as_matrix()
+    bent = bent @ rot.T
+    perm = np.random.RandomState(0).permutation(len(v))
+    inv = np.argsort(perm)
+    res = match_surfaces(
+        v,
+        f,
+        bent[perm],
+        inv[f],
+        n_sparse=20,
+        n_sparse_targets=30,
+        n_triplets=60,
+        n_align=80,
+        n_vote=40,
+        random_state=0,
+    )
+    truth = inv  # vertex i of A is vertex inv[i] of B
+    geo = GeodesicSolver(bent[perm], inv[f])
+    scale = np.sqrt(face_areas(bent, f).sum())
+    rows = np.arange(0, len(v), 7)
+    err = np.array([geo.distance(truth[i])[res.forward[i]] for i in rows]) / scale
+    assert np.mean(err) < 0.03
+    assert res.forward.shape == (len(v),) and res.inverse.shape == (len(v),)
+    assert res.sparse.lower_bound <= res.sparse.energy + 1e-9
