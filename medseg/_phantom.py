@@ -268,8 +268,14 @@ def make_phantom_case(
     reference = _grid_image(size_xyz, spacing, direction)
     shape_zyx = tuple(int(s) for s in size_xyz[::-1])
     spacing_zyx = spacing[::-1]
-    zyx = np.indices(shape_zyx, dtype=float).reshape(3, -1).T
-    world = voxel_to_physical(reference, zyx).reshape(*shape_zyx, 3)
+    # World position of every voxel centre: the grid is affine, so the helper maps the first
+    # voxel and the three unit index steps, and the grid is their broadcast sum.
+    corner, *steps = voxel_to_physical(reference, np.vstack([np.zeros(3), np.eye(3)]))
+    world = corner + sum(
+        np.arange(n, dtype=float).reshape([-1 if a == axis else 1 for a in range(3)] + [1])
+        * (step - corner)
+        for axis, (n, step) in enumerate(zip(shape_zyx, steps, strict=True))
+    )
     fields = np.random.default_rng(rng.randint(np.iinfo(np.int32).max))
     width = 0.5  # mm, partial-volume edge of every structure
 

@@ -26,7 +26,8 @@ import SimpleITK as sitk
 from sklearn.utils import check_random_state
 
 from medseg._phantom import make_phantom_case, phantom_landmark_index
-from medseg.errors import CohortError, InputFileError
+from medseg.errors import CohortError, InputFileError, LabelError
+from medseg.io import read_image, read_label, read_landmarks, write_image, write_landmarks
 
 __all__ = [
     "Case",
@@ -47,54 +48,6 @@ _MANIFEST_COLUMNS = {
     "case_id": "case_id",
     "case": "case_id",
 }
-
-
-# ----------------------------------------------------------------------------- io plumbing
-# medseg.io is the one way to read and write images and landmark files. Until its readers
-# are committed, these fall back to plain SimpleITK / CSV (temporary, removed once io lands).
-
-
-def _io():
-    import medseg.io
-
-    return medseg.io
-
-
-def _read_image(source) -> sitk.Image:
-    io = _io()
-    if hasattr(io, "read_image"):
-        return io.read_image(source)
-    return source if isinstance(source, sitk.Image) else sitk.ReadImage(str(source))
-
-
-def _read_label(source, reference=None) -> sitk.Image:
-    io = _io()
-    if hasattr(io, "read_label"):
-        return io.read_label(source, reference)
-    return source if isinstance(source, sitk.Image) else sitk.ReadImage(str(source))
-
-
-def _write_image(image: sitk.Image, path: Path) -> None:
-    io = _io()
-    if hasattr(io, "write_image"):
-        io.write_image(image, path)
-    else:
-        sitk.WriteImage(image, str(path), True)
-
-
-def _read_landmarks(path) -> np.ndarray:
-    io = _io()
-    if hasattr(io, "read_landmarks"):
-        return io.read_landmarks(path)
-    return np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)[:, :3]
-
-
-def _write_landmarks(points: np.ndarray, path: Path) -> None:
-    io = _io()
-    if hasattr(io, "write_landmarks"):
-        io.write_landmarks(points, path)
-    else:
-        np.savetxt(path, points, delimiter=",", header="x,y,z", comments="", fmt="%.17g")
 
 
 # ----------------------------------------------------------------------------- data model
@@ -129,7 +82,7 @@ class Case:
 
     def load_image(self) -> sitk.Image:
         """The image as a SimpleITK image (read from disk when a path)."""
-        return _read_image(self.image)
+        return read_image(self.image)
 
     def load_label(self) -> sitk.Image:
         """The raw label map (all labels), checked against the image's geometry.
@@ -140,13 +93,11 @@ class Case:
             The case has no label map.
         """
         if self.label is None:
-            from medseg.errors import LabelError
-
             raise LabelError(f"case {self.case_id!r} has no label map")
         reference = self.image if isinstance(self.image, sitk.Image) else None
         if reference is None and isinstance(self.image, str | os.PathLike):
             reference = self.image
-        return _read_label(self.label, reference)
+        return read_label(self.label, reference)
 
     def load_landmarks(self) -> np.ndarray | None:
         """Ground-truth landmarks, (N, 3) float array in mm (x, y, z), or None."""
@@ -154,7 +105,7 @@ class Case:
             return None
         if isinstance(self.landmarks, np.ndarray):
             return np.asarray(self.landmarks, dtype=float)
-        return _read_landmarks(self.landmarks)
+        return read_landmarks(self.landmarks)
 
 
 @dataclass
@@ -687,8 +638,8 @@ def write_cohort(cohort: Cohort, folder: str | os.PathLike, *, overwrite: bool =
             label = case.load_label()
             image_rel = f"imagesTr/{case.case_id}_0000.nii.gz"
             label_rel = f"labelsTr/{case.case_id}.nii.gz"
-            _write_image(image, staging / image_rel)
-            _write_image(label, staging / label_rel)
+            write_image(image, staging / image_rel)
+            write_image(label, staging / label_rel)
             row = {
                 "case": case.case_id,
                 "subject_key": case.subject,
@@ -700,7 +651,7 @@ def write_cohort(cohort: Cohort, folder: str | os.PathLike, *, overwrite: bool =
             if landmarks is not None:
                 (staging / "landmarksTr").mkdir(exist_ok=True)
                 row["landmarks"] = f"landmarksTr/{case.case_id}.csv"
-                _write_landmarks(landmarks, staging / row["landmarks"])
+                write_landmarks(landmarks, staging / row["landmarks"])
             training.append({"image": f"./{image_rel}", "label": f"./{label_rel}"})
             rows.append(row)
         labels = dict(cohort.labels) or {"background": 0, "foreground": 1}

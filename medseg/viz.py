@@ -8,11 +8,9 @@ synthetic phantom cohort.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import io as _bytes_io
 import os
 import sys
-import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -20,6 +18,7 @@ import numpy as np
 import SimpleITK as sitk
 
 from medseg.errors import ImageGeometryError, InputFileError, MedsegError
+from medseg.io import atomic_write, read_image, read_label
 
 __all__ = ["save_slice_png", "save_cohort_png", "main"]
 
@@ -29,31 +28,7 @@ _AXIS_NAMES = {0: "z", 1: "y", 2: "x"}
 def _read(source, *, kind: str) -> sitk.Image:
     if isinstance(source, sitk.Image):
         return source
-    try:
-        from medseg.io import read_image, read_label
-    except ImportError:  # pragma: no cover - io not extended yet
-        return sitk.ReadImage(str(source))
     return read_label(source) if kind == "label" else read_image(source)
-
-
-@contextlib.contextmanager
-def _atomic(path: Path):
-    try:
-        from medseg.io import atomic_write
-    except ImportError:  # pragma: no cover - io not extended yet
-        atomic_write = None
-    if atomic_write is not None:
-        with atomic_write(path) as tmp:
-            yield Path(tmp)
-        return
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    os.close(fd)
-    try:
-        yield Path(tmp)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
 
 
 def _slice_arrays(
@@ -128,7 +103,7 @@ def _save_figure(fig, path: Path, dpi: int) -> Path:
         raise InputFileError(f"cannot write {path}: folder {path.parent} does not exist")
     buffer = _bytes_io.BytesIO()
     fig.savefig(buffer, format="png", dpi=dpi, bbox_inches="tight")
-    with _atomic(path) as tmp:
+    with atomic_write(path) as tmp:
         Path(tmp).write_bytes(buffer.getvalue())
     return path
 
