@@ -1,0 +1,284 @@
+"""Tests of medseg.correspondence on small generated label maps (and a few real cases)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
+
+from medseg.correspondence import (
+    CorrespondenceResult,
+    label_surface,
+    landmarks_from_labels,
+    plot_correspondences,
+)
+from medseg.errors import CohortError, LabelError, MeshError
+from medseg.io import voxel_to_physical
+
+
+def _grid(size_xyz, spacing, direction=None, centre=(0.0, 0.0, 0.0)) -> sitk.Image:
+    image = sitk.Image([int(s) for s in size_xyz], sitk.sitkUInt8)
+    image.SetSpacing([float(s) for s in spacing])
+    d = np.eye(3) if direction is None else np.asarray(direction, float)
+    image.SetDirection(d.ravel().tolist())
+    half = (np.asarray(size_xyz) - 1) / 2.0 * np.asarray(spacing)
+    image.SetOrigin((np.asarray(centre) - d @ half).tolist())
+    return image
+
+
+def _rasterise(image: sitk.Image, inside) -> sitk.Image:
+    """Label 1 where ``inside(points_mm)`` holds, on the grid of ``image``."""
+    shape = image.GetSize()[::-1]
+    zyx = np.indices(shape).reshape(3, -1).T
+    pts = voxel_to_physical(image, zyx)
+    out = sitk.GetImageFromArray(inside(pts).reshape(shape).astype(np.uint8))
+    out.CopyInformation(image)
+    return out
+
+
+def _bean(stretch=(1.0, 1.0, 1.0)):
+    """Asymmetric blob (ellipsoid with a bump and a dent), ~26 x 18 x 14 mm."""
+    axes = np.array([13.0, 9.0, 7.0]) * np.asarray(stretch)
+
+    def inside(p):
+        f = ((p / axes) ** 2).sum(1)
+        f -= 0.6 * np.exp(-((p - [7.0, 6.0, 3.0]) ** 2).sum(1) / (2 * 3.0**2))
+        f += 0.5 * np.exp(-((p - [-6.0, -2.0, 6.0]) ** 2).sum(1) / (2 * 3.0**2))
+        return f <= 1.0
+
+    return inside
+
+
+def _bean_label(stretch=(1.0, 1.0, 1.0), spacing=(1.0, 1.0, 1.0), direction=None):
+    size = np.ceil(40.0 / np.asarray(spacing)).astype(int)
+    return _rasterise(_grid(size, spacing, direction), _bean(stretch))
+
+
+def _similarity_resample(label: sitk.Image, rotation, scale, translation) -> sitk.Image:
+    """``label`` moved by ``x -> scale R x + t``, resampled (nearest neighbour) on a new grid."""
+    tf = sitk.Similarity3DTransform()
+    tf.SetMatrix(np.asarray(rotation).ravel().tolist())
+    tf.SetScale(float(scale))
+    tf.SetTranslation(np.asarray(translation, float).tolist())
+    size = np.array(label.GetSize())
+    out = _grid(
+        np.ceil(size * max(scale, 1.0) * 1.8).astype(int),
+        label.GetSpacing(),
+        centre=np.asarray(translation, float),
+    )
+    # Resample maps output points to input points: the inverse of the motion
+    return sitk.Resample(label, out, tf.GetInverse(), sitk.sitkNearestNeighbor, 0)
+
+
+def _apply(points, rotation, scale, translation):
+    return scale * np.asarray(points) @ np.asarray(rotation).T + np.asarray(translation)
+
+
+@pytest.fixture(scope="module")
+def pair_result():
+    a = _bean_label()
+    b = _bean_label(stretch=(1.15, 0.95, 1.0))
+    return (a, b), landmarks_from_labels([a, b], n_landmarks=20, reference=0, random_state=0)
+
+
+# ---------------------------------------------------------------- surfaces
+
+
+def test_label_surface_is_in_physical_mm_on_an_oblique_anisotropic_grid():
+    rot = Rotation.from_euler("xyz", [20, -35, 50], degrees=True).as_matrix()
+    centre = np.array([30.0, -12.0, 7.0])
+    img = _rasterise(
+        _grid((34, 30, 16), (0.7, 0.8, 1.6), rot, centre=centre),
+        lambda p: ((p - centre) ** 2).sum(1) <= 9.0**2,
+    )
+    verts, faces = label_surface(img)
+    radius = np.linalg.norm(verts - centre, axis=1)
+    # within a fraction of the coarsest voxel of the true sphere, all around it
+    assert abs(np.median(radius) - 9.0) < 0.4
+    assert np.percentile(np.abs(radius - 9.0), 95) < 1.0
+    np.testing.assert_allclose(verts.mean(0), centre, atol=0.3)
+    # faces oriented outwards: positive enclosed volume close to the sphere's
+    v0, v1, v2 = verts[faces[:, 0]], verts[faces[:, 1]], verts[faces[:, 2]]
+    volume = np.einsum("ij,ij->", v0, np.cross(v1, v2)) / 6.0
+    assert volume == pytest.approx(4 / 3 * np.pi * 9.0**3, rel=0.1)
+
+
+def test_label_surface_uses_the_union_of_labels():
+    img = _bean_label()
+    arr = sitk.GetArrayFromImage(img)
+    arr[:, :, :20][arr[:, :, :20] == 1] = 2  # split the structure into labels 1 and 2
+    two = sitk.GetImageFromArray(arr)
+    two.CopyInformation(img)
+    v_union, _ = label_surface(two, labels=(1, 2))
+    v_ref, _ = label_surface(img, labels=1)
+    np.testing.assert_allclose(np.sort(v_union, axis=0), np.sort(v_ref, axis=0))
+    with pytest.raises(LabelError, match="'c7'.*empty"):
+        label_surface(two, labels=3, case_id="c7")
+
+
+def test_empty_label_names_the_case():
+    img = _grid((10, 10, 10), (1, 1, 1))
+    with pytest.raises(LabelError, match="'case-x'.*empty"):
+        landmarks_from_labels([_bean_label(), img], case_ids=["ok", "case-x"])
+
+
+def _two_blobs():
+    img = _grid((40, 30, 30), (1, 1, 1))
+    return _rasterise(
+        img,
+        lambda p: (((p - [-9, 0, 0]) ** 2).sum(1) <= 36) | (((p - [9, 0, 0]) ** 2).sum(1) <= 25),
+    )
+
+
+def test_disconnected_label_is_an_error_with_component_sizes():
+    with pytest.raises(LabelError, match=r"'twins'.*2 disconnected.*sizes in voxels: \d+, \d+"):
+        label_surface(_two_blobs(), case_id="twins")
+
+
+def test_keep_largest_keeps_the_largest_part():
+    verts, _ = label_surface(_two_blobs(), keep_largest=True)
+    assert np.all(verts[:, 0] < 0)  # only the radius-6 blob at x = -9
+    assert np.linalg.norm(verts - [-9, 0, 0], axis=1).mean() == pytest.approx(6.0, abs=0.5)
+
+
+def test_small_specks_are_ignored():
+    img = _bean_label()
+    arr = sitk.GetArrayFromImage(img)
+    arr[1, 1, 1] = 1  # one stray voxel far from the bean
+    speck = sitk.GetImageFromArray(arr)
+    speck.CopyInformation(img)
+    v_speck, _ = label_surface(speck)
+    v_ref, _ = label_surface(img)
+    assert len(v_speck) == len(v_ref)
+
+
+# ---------------------------------------------------------------- landmarks
+
+
+def test_result_shapes_and_reference(pair_result):
+    _, res = pair_result
+    assert isinstance(res, CorrespondenceResult)
+    assert res.landmarks.shape == (2, 20, 3)
+    assert res.reference_index == 0 and res.residuals_mm[0] == 0.0
+    ref_v, _ = res.reference_surface
+    np.testing.assert_array_equal(ref_v[res.reference_landmark_index], res.landmarks[0])
+    assert res.success and not res.failed.any()
+    assert res.transforms.shape == (2, 4, 4)
+
+
+def test_landmarks_lie_on_each_boundary_and_are_spread(pair_result):
+    _, res = pair_result
+    for s in range(2):
+        verts, _ = res.surfaces[s]
+        d, _ = cKDTree(verts).query(res.landmarks[s])
+        assert d.max() < 0.8  # on the surface (vertex spacing under 1 mm)
+        gaps = cKDTree(res.landmarks[s]).query(res.landmarks[s], k=2)[0][:, 1]
+        assert gaps.min() > 2.0  # farthest-point sampling keeps them apart
+
+
+def test_transfer_follows_a_known_stretch(pair_result):
+    # case 1 is the bean stretched by (1.15, 0.95, 1): the true partner of a reference
+    # landmark is the stretched landmark, pushed back onto the surface
+    _, res = pair_result
+    expected = res.landmarks[0] * [1.15, 0.95, 1.0]
+    verts, _ = res.surfaces[1]
+    _, idx = cKDTree(verts).query(expected)
+    err = np.linalg.norm(res.landmarks[1] - verts[idx], axis=1)
+    assert np.median(err) < 1.0  # mm, voxels of 1 mm
+    assert res.residuals_mm[1] < 0.3
+    spacing = np.median(cKDTree(res.landmarks[0]).query(res.landmarks[0], k=2)[0][:, 1])
+    assert err.max() < 0.5 * spacing  # no landmark swapped with a neighbour
+
+
+@settings(
+    max_examples=2, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    scale=st.floats(0.8, 1.3),
+    shift=st.tuples(*[st.floats(-30.0, 30.0)] * 3),
+)
+def test_landmarks_follow_a_similarity_transform_of_the_label_map(pair_result, seed, scale, shift):
+    (a, b), res = pair_result
+    rot = Rotation.random(random_state=seed).as_matrix()
+    moved = _similarity_resample(b, rot, scale, shift)
+    res2 = landmarks_from_labels([a, moved], n_landmarks=20, reference=0, random_state=0)
+    np.testing.assert_allclose(res2.landmarks[0], res.landmarks[0])
+    err = np.linalg.norm(res2.landmarks[1] - _apply(res.landmarks[1], rot, scale, shift), axis=1)
+    # nearest-neighbour resampling moves the boundary by up to a voxel (1 mm here); a
+    # landmark swapped with a neighbour would be off by the landmark spacing, about 6 mm
+    assert np.median(err) < 1.0
+    assert err.max() < 2.5
+    assert not res2.failed.any()
+
+
+def test_mirror_images_need_allow_reflection():
+    a = _bean_label()
+    arr = sitk.GetArrayFromImage(a)[:, :, ::-1]  # x -> -x about the centre: mirror image
+    m = sitk.GetImageFromArray(np.ascontiguousarray(arr))
+    m.CopyInformation(a)
+    proper = landmarks_from_labels([a, m], n_landmarks=15, reference=0, random_state=0)
+    mirror = landmarks_from_labels(
+        [a, m], n_landmarks=15, reference=0, random_state=0, allow_reflection=True
+    )
+    expected = mirror.landmarks[0] * [-1.0, 1.0, 1.0]
+    err_mirror = np.linalg.norm(mirror.landmarks[1] - expected, axis=1)
+    err_proper = np.linalg.norm(proper.landmarks[1] - expected, axis=1)
+    assert np.median(err_mirror) < 1.0
+    assert np.median(err_proper) > np.median(err_mirror)
+    assert mirror.residuals_mm[1] <= proper.residuals_mm[1]
+
+
+def test_default_reference_is_the_most_typical_case():
+    cases = [_bean_label(stretch=s) for s in [(1.3, 1.0, 1.0), (1.0, 1.0, 1.0), (0.8, 1, 1)]]
+    res = landmarks_from_labels(cases, n_landmarks=12, random_state=0)
+    assert res.reference_index == 1
+    assert res.n_landmarks == 12
+
+
+def test_too_many_landmarks_is_a_mesh_error():
+    with pytest.raises(MeshError, match="n_landmarks=100000.*supports"):
+        landmarks_from_labels([_bean_label()], n_landmarks=100000)
+
+
+def test_no_cases_or_bad_reference_is_a_cohort_error():
+    with pytest.raises(CohortError, match="at least one"):
+        landmarks_from_labels([])
+    with pytest.raises(CohortError, match="reference"):
+        landmarks_from_labels([_bean_label()], reference=3)
+
+
+def test_failed_cases_are_flagged_by_the_threshold():
+    a, b = _bean_label(), _bean_label(stretch=(1.1, 1, 1))
+    res = landmarks_from_labels([a, b], n_landmarks=12, reference=0, max_residual_mm=1e-6)
+    assert res.failed.tolist() == [False, True]
+    assert not res.success
+
+
+def test_plot_correspondences_writes_a_png(pair_result, tmp_path):
+    _, res = pair_result
+    path = plot_correspondences(res, tmp_path / "corr.png", n_cases=2)
+    data = path.read_bytes()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 5000
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["corr.png"]
+
+
+# ---------------------------------------------------------------- real data
+
+
+@pytest.mark.data
+def test_hippocampus_cases_get_corresponding_landmarks(hippocampus_dir):
+    files = sorted((hippocampus_dir / "labelsTr").glob("*.nii.gz"))[:3]
+    labels = [sitk.ReadImage(str(f)) for f in files]
+    res = landmarks_from_labels(
+        labels, labels=(1, 2), n_landmarks=24, random_state=0, case_ids=[f.name for f in files]
+    )
+    assert res.success, res.residuals_mm
+    assert np.all(res.residuals_mm < 1.0)
+    for s in range(3):
+        d, _ = cKDTree(res.surfaces[s][0]).query(res.landmarks[s])
+        assert d.max() < 0.8
