@@ -56,6 +56,7 @@ __all__ = [
     "CorrespondenceResult",
     "label_surface",
     "landmarks_from_labels",
+    "cohort_landmarks",
     "plot_correspondences",
 ]
 
@@ -469,6 +470,59 @@ def landmarks_from_labels(
         case_ids=ids,
         max_residual_mm=threshold,
     )
+
+
+def cohort_landmarks(
+    cohort,
+    *,
+    labels: int | Sequence[int] = (1,),
+    use_given: bool = True,
+    **kwargs,
+) -> np.ndarray:
+    """Landmarks of every case of a cohort: the user's own if given, else from the labels.
+
+    Parameters
+    ----------
+    cohort : medseg.datasets.Cohort (or any sequence of cases)
+        Cases with ``load_landmarks()`` and ``load_label()``.
+    labels : int or sequence of int, default (1,)
+        Structure used when the landmarks are computed.
+    use_given : bool, default True
+        If every case has landmarks (CSV / Slicer files, or arrays), return them unchanged
+        and skip the correspondence step.
+    **kwargs
+        Passed to :func:`landmarks_from_labels`.
+
+    Returns
+    -------
+    landmarks : (S, N, 3) float array, mm, (x, y, z)
+
+    Raises
+    ------
+    CohortError
+        Some cases have landmarks and others not, or the given landmark counts differ.
+    """
+    cases = list(cohort)
+    given = [c.load_landmarks() for c in cases] if use_given else [None] * len(cases)
+    have = [g is not None for g in given]
+    if use_given and all(have) and cases:
+        counts = {len(g) for g in given}
+        if len(counts) != 1:
+            raise CohortError(
+                f"the cohort's landmark files hold different numbers of landmarks {sorted(counts)}"
+                "; every case needs the same landmarks in the same order"
+            )
+        return np.stack([np.asarray(g, float) for g in given])
+    if any(have) and use_given:
+        missing = [c.case_id for c, h in zip(cases, have, strict=True) if not h][:5]
+        raise CohortError(
+            f"{sum(have)} of {len(cases)} cases have landmark files but others do not (e.g. "
+            f"{missing}). Give landmarks for every case, or pass use_given=False to compute "
+            "them all from the label maps."
+        )
+    kwargs.setdefault("case_ids", [c.case_id for c in cases])
+    result = landmarks_from_labels([c.load_label() for c in cases], labels=labels, **kwargs)
+    return result.landmarks
 
 
 # ---------------------------------------------------------------------- figure

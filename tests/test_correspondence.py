@@ -12,6 +12,7 @@ from scipy.spatial.transform import Rotation
 
 from medseg.correspondence import (
     CorrespondenceResult,
+    cohort_landmarks,
     label_surface,
     landmarks_from_labels,
     plot_correspondences,
@@ -282,3 +283,36 @@ def test_hippocampus_cases_get_corresponding_landmarks(hippocampus_dir):
     for s in range(3):
         d, _ = cKDTree(res.surfaces[s][0]).query(res.landmarks[s])
         assert d.max() < 0.8
+
+
+# ---------------------------------------------------------------- cohorts
+
+
+def _cohort(labels, landmarks):
+    from medseg.datasets import Case, Cohort
+
+    cases = [
+        Case(case_id=f"c{i}", subject=f"s{i}", image=lab, label=lab, landmarks=lm)
+        for i, (lab, lm) in enumerate(zip(labels, landmarks, strict=True))
+    ]
+    return Cohort(cases=cases, labels={"background": 0, "bean": 1}, name="beans", root=None)
+
+
+def test_cohort_landmarks_given_by_the_user_bypass_correspondence():
+    lab = _bean_label()
+    given = [np.random.default_rng(i).normal(size=(7, 3)) for i in range(2)]
+    out = cohort_landmarks(_cohort([lab, lab], given))
+    np.testing.assert_array_equal(out, np.stack(given))
+
+
+def test_cohort_landmarks_mixed_files_are_a_cohort_error():
+    lab = _bean_label()
+    with pytest.raises(CohortError, match="1 of 2 cases.*use_given=False"):
+        cohort_landmarks(_cohort([lab, lab], [np.zeros((7, 3)), None]))
+
+
+def test_cohort_landmarks_computed_from_labels_when_absent(pair_result):
+    (a, b), res = pair_result
+    out = cohort_landmarks(_cohort([a, b], [None, None]), n_landmarks=20, reference=0,
+                           random_state=0)  # fmt: skip
+    np.testing.assert_allclose(out, res.landmarks)
