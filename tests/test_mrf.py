@@ -206,7 +206,7 @@ def test_a_tree_shaped_problem_is_solved_exactly_in_one_iteration():
     n_pairs=st.integers(0, 6),
     n_triplets=st.integers(0, 6),
     forbid=st.sampled_from([0.0, 0.1]),
-    method=st.sampled_from(["mplp", "subgradient"]),
+    method=st.sampled_from(["srmp", "mplp", "subgradient"]),
 )
 def test_dual_decomposition_agrees_with_exhaustive_search(
     seed, n, max_labels, n_pairs, n_triplets, forbid, method
@@ -240,7 +240,7 @@ def planted_problem(rng, n, n_labels, n_cliques):
     return MRF.from_triplets(unaries, cliques, tables), truth
 
 
-@pytest.mark.parametrize("method", ["mplp", "subgradient"])
+@pytest.mark.parametrize("method", ["srmp", "mplp", "subgradient"])
 def test_medium_problem_against_highs_ilp_and_lp_bound(method):
     rng = np.random.default_rng(5)
     mrf, _ = planted_problem(rng, 14, 5, 40)
@@ -265,7 +265,7 @@ def test_random_hard_problem_bounds_against_lp():
     mrf = MRF.from_triplets(rng.random((n, lab)), cliques, rng.random((25, lab, lab, lab)))
     lp = solve_ilp(mrf, relaxation=True, time_limit=60)
     exact = exhaustive_search(mrf)
-    for method in ("mplp", "subgradient"):
+    for method in ("srmp", "mplp", "subgradient"):
         res = solve(mrf, method=method, tol=1e-6, max_iter=300)
         assert res.lower_bound <= lp.lower_bound + EPS
         assert res.lower_bound <= exact.energy + EPS
@@ -289,7 +289,7 @@ def test_iteration_and_time_limits_are_statuses_not_exceptions():
     mrf = MRF.from_triplets(
         rng.random((n, lab)), cliques, rng.random((len(cliques), lab, lab, lab))
     )
-    for method in ("mplp", "subgradient"):
+    for method in ("srmp", "mplp", "subgradient"):
         res = solve(mrf, method=method, max_iter=1, tol=0)
         assert res.status == 1 and not res.success and res.n_iter == 1
         assert res.lower_bound <= res.energy

@@ -12,11 +12,12 @@ from medseg.mrf._kernels import CHUNK_BYTES
 from medseg.mrf._model import MRF, check_memory
 from medseg.mrf._mplp import solve_mplp
 from medseg.mrf._result import SolveResult
+from medseg.mrf._srmp import solve_srmp
 from medseg.mrf._subgradient import solve_subgradient
 
 __all__ = ["solve", "estimate_solver_bytes", "METHODS"]
 
-METHODS = ("mplp", "subgradient")
+METHODS = ("srmp", "mplp", "subgradient")
 
 
 def estimate_solver_bytes(mrf: MRF, method: str = "mplp") -> int:
@@ -162,7 +163,8 @@ def solve(
                 local_search=local_search,
                 progress=bar,
             )
-        return solve_mplp(
+        solver = solve_mplp if method == "mplp" else solve_srmp
+        return solver(
             mrf,
             max_iter=max_iter,
             tol=tol,

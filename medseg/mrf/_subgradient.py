@@ -42,6 +42,7 @@ def solve_subgradient(
     time_limit: float | None,
     patience: int,
     min_step_scale: float,
+    initial_scale: float = 1.0,
     local_search: bool,
     progress,
 ) -> SolveResult:
@@ -64,7 +65,7 @@ def solve_subgradient(
 
     primal = PrimalTracker(mrf, local_search=local_search)
     best_lb, best_lam = -np.inf, lam.copy()
-    scale, since = 1.0, 0
+    scale, since = initial_scale, 0
     hist_e, hist_lb = [], []
     status, it = 1, 0
     while it < max_iter:
