@@ -76,18 +76,20 @@ def bench_cohort(root: Path) -> None:
     if not images:
         print(f"hippocampus cohort not found under {root}: skipped")
         return
-    failures, snapped = [], 0
+    failures, labels = [], {}
     t0 = time.perf_counter()
     for path in images:
-        label_path = folder / "labelsTr" / path.name
         try:
             image = mio.read_image(path)
-            raw = sitk.ReadImage(str(label_path))
-            label = mio.read_label(label_path, reference=image)
-            snapped += mio.image_geometry(raw) != mio.image_geometry(label)
+            labels[path.name] = mio.read_label(folder / "labelsTr" / path.name, reference=image)
         except MedsegError as exc:
             failures.append(f"{path.name}: {exc}")
     elapsed = time.perf_counter() - t0
+    snapped = sum(
+        mio.image_geometry(sitk.ReadImage(str(folder / "labelsTr" / name)))
+        != mio.image_geometry(label)
+        for name, label in labels.items()
+    )
     t0 = time.perf_counter()
     for path in images:
         sitk.ReadImage(str(path))
@@ -105,13 +107,16 @@ def bench_cohort(root: Path) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--size", type=int, default=256, help="Edge of the cube. Default: 256.")
+    parser.add_argument(
+        "--size", type=int, default=256, help="Edge of the cube; 0 skips. Default: 256."
+    )
     parser.add_argument("--repeat", type=int, default=3, help="Runs per timing. Default: 3.")
     parser.add_argument("--tmp", default=tempfile.gettempdir(), help="Scratch folder root.")
     args = parser.parse_args()
     data = Path(os.environ.get("MEDSEG_DATA", Path(__file__).resolve().parents[2] / "shared/data"))
-    with tempfile.TemporaryDirectory(dir=args.tmp) as tmp:
-        bench_large(args.size, args.repeat, Path(tmp))
+    if args.size > 0:
+        with tempfile.TemporaryDirectory(dir=args.tmp) as tmp:
+            bench_large(args.size, args.repeat, Path(tmp))
     bench_cohort(data)
 
 
