@@ -2,10 +2,25 @@
 
 Segmentation after Wang, Teboul, Michel, Essafi & Paragios (MICCAI 2010) and surface matching
 after Zeng, Wang, Wang, Gu, Samaras & Paragios (CVPR 2010).
+
+>>> import medseg
+>>> model = medseg.load_model("model/")               # doctest: +SKIP
+>>> seg = model.segment("case.nii.gz")                # doctest: +SKIP
 """
 
 from medseg.errors import MedsegError
 
 __version__ = "0.1.0"
 
-__all__ = ["MedsegError", "__version__"]
+__all__ = ["MedsegError", "ShapePriorSegmenter", "Segmentation", "load_model", "__version__"]
+
+_LAZY = {"ShapePriorSegmenter", "Segmentation", "load_model"}
+
+
+def __getattr__(name: str):
+    # The segmenter pulls in scikit-learn, pyvista, ...: import it on first use only.
+    if name in _LAZY:
+        from medseg import model
+
+        return getattr(model, name)
+    raise AttributeError(f"module 'medseg' has no attribute {name!r}")

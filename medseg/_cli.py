@@ -37,3 +37,16 @@ def run_cli(
 def show_progress(quiet: bool = False) -> bool:
     """Whether tqdm progress bars should be shown: on a terminal and not ``--quiet``."""
     return (not quiet) and sys.stderr.isatty()
+
+
+def parse_labels(text: str) -> tuple[int, ...]:
+    """``"1,2"`` -> ``(1, 2)``; a clear error for anything else."""
+    try:
+        labels = tuple(int(part) for part in text.split(",") if part.strip())
+    except ValueError:
+        labels = ()
+    if not labels or min(labels) < 1:
+        raise MedsegError(
+            f"--label {text!r} is not a comma-separated list of positive integers (e.g. 1,2)"
+        )
+    return labels

@@ -3,28 +3,88 @@
 from __future__ import annotations
 
 import argparse
+import sys
+import time
 from collections.abc import Sequence
 
-from medseg._cli import run_cli
-from medseg.errors import MedsegError
+from medseg._cli import EXIT_OK, parse_labels, run_cli, show_progress
+from medseg.datasets import load_cohort, make_phantom_cohort
+from medseg.model import ShapePriorSegmenter
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="medseg-train",
         description=(
-            "Train a segmentation model (landmarks, Random-Forest detectors, triplet shape "
-            "prior) from an MSD / nnU-Net dataset folder or a CSV manifest. "
-            "NOT BUILT YET: the model is tracked in issue 6."
+            "Train a segmentation model (landmarks in correspondence, one Random-Forest "
+            "detector per landmark, a pose-invariant triplet shape prior) from an MSD / "
+            "nnU-Net dataset folder, a CSV manifest, or 'phantom' (the embedded synthetic "
+            "cohort)."
         ),
     )
-    parser.add_argument("dataset", help="MSD / nnU-Net folder or CSV manifest.")
+    parser.add_argument(
+        "dataset", help="MSD / nnU-Net folder (dataset.json), CSV manifest, or 'phantom'."
+    )
     parser.add_argument("-o", "--output", required=True, help="Model folder to write.")
+    parser.add_argument(
+        "--label",
+        default="1",
+        help="Label(s) forming the structure, comma-separated, e.g. 1,2. Default: 1.",
+    )
+    parser.add_argument(
+        "--landmarks",
+        type=int,
+        default=None,
+        help="Landmarks per shape (N). Default: the phantom's own, else sized to the structure.",
+    )
+    parser.add_argument(
+        "--candidates", type=int, default=20, help="Candidates per landmark (L). Default: 20."
+    )
+    parser.add_argument(
+        "--cliques",
+        choices=("knn", "delaunay", "all"),
+        default="knn",
+        help="Triplet cliques of the shape prior. Default: knn.",
+    )
+    parser.add_argument("--seed", type=int, default=0, help="Random seed. Default: 0.")
+    parser.add_argument(
+        "--jobs", type=int, default=1, help="Parallel jobs for the forests. Default: 1."
+    )
+    parser.add_argument(
+        "--phantom-subjects",
+        type=int,
+        default=20,
+        help="Subjects of the phantom cohort when DATASET is 'phantom'. Default: 20.",
+    )
+    parser.add_argument("-q", "--quiet", action="store_true", help="No progress bars.")
     return parser
 
 
 def _run(args: argparse.Namespace) -> int:
-    raise MedsegError("medseg-train is not built yet (the segmentation model is issue 6).")
+    labels = parse_labels(args.label)
+    if args.dataset == "phantom":
+        cohort = make_phantom_cohort(args.phantom_subjects, random_state=args.seed)
+    else:
+        cohort = load_cohort(args.dataset)
+    start = time.perf_counter()
+    model = ShapePriorSegmenter(
+        args.landmarks,
+        labels=labels,
+        n_candidates=args.candidates,
+        cliques=args.cliques,
+        random_state=args.seed,
+        n_jobs=args.jobs,
+    ).fit(cohort, progress=show_progress(args.quiet))
+    model.save(args.output)
+    elapsed = time.perf_counter() - start
+    print(
+        f"trained on {len(model.cases_)} of {len(cohort)} cases of {cohort.name!r}: "
+        f"{model.landmarks_.shape[1]} landmarks, {len(model.prior_.cliques_)} cliques, "
+        f"{elapsed:.0f} s; model written to {args.output}"
+    )
+    for case_id, reason in model.rejected_.items():
+        print(f"  rejected {case_id}: {reason}", file=sys.stderr)
+    return EXIT_OK
 
 
 def main(argv: Sequence[str] | None = None) -> int:

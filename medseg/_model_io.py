@@ -1,0 +1,176 @@
+"""Model folders on disk: JSON + NPZ + skops, a format version, checksums, no pickle.
+
+Layout of a model folder::
+
+    model.json        format version, medseg version, parameters, training summary,
+                      and the SHA-256 of every other file
+    template.npz      template mask (with its geometry), landmarks, surface, training landmarks
+    detector/         written by LandmarkDetector.save (skops + JSON)
+    prior.npz         written by TripletPrior.save (NPZ with a JSON header)
+
+The folder is assembled in a temporary sibling and renamed into place, so a failed save
+leaves no half-written model. Loading verifies the format version and every checksum
+before anything is deserialised.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import SimpleITK as sitk
+
+import medseg
+from medseg.errors import InputFileError, ModelFileError
+
+FORMAT = "medseg-shape-prior-segmenter"
+FORMAT_VERSION = 1
+_PARAMS = (
+    "n_landmarks",
+    "labels",
+    "n_candidates",
+    "cliques",
+    "density",
+    "alpha",
+    "n_estimators",
+    "smoothing",
+    "max_iter",
+    "n_jobs",
+)
+MAX_MODEL_BYTES = 2 * 1024**3
+
+
+def _sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def _files(folder: Path) -> list[Path]:
+    return sorted(p for p in folder.rglob("*") if p.is_file() and p.name != "model.json")
+
+
+def save_model(model, path: Path) -> Path:
+    from medseg.detection import LandmarkDetector  # noqa: F401  (type of model.detector_)
+
+    path = Path(path)
+    if path.exists() and not (path / "model.json").is_file():
+        raise InputFileError(
+            f"{path} exists and is not a medseg model folder; choose another output path"
+        )
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.tmp-", dir=path.parent))
+    try:
+        mask = model.template_mask_
+        vertices, faces = model.template_surface_
+        np.savez_compressed(
+            tmp / "template.npz",
+            mask=sitk.GetArrayFromImage(mask).astype(np.uint8),
+            spacing=np.asarray(mask.GetSpacing()),
+            origin=np.asarray(mask.GetOrigin()),
+            direction=np.asarray(mask.GetDirection()),
+            landmarks=np.asarray(model.template_landmarks_),
+            vertices=np.asarray(vertices, dtype=float),
+            faces=np.asarray(faces, dtype=np.int64),
+            training_landmarks=np.asarray(model.landmarks_),
+        )
+        model.detector_.save(tmp / "detector")
+        model.prior_.save(tmp / "prior.npz")
+        meta = {
+            "format": FORMAT,
+            "format_version": FORMAT_VERSION,
+            "medseg_version": medseg.__version__,
+            "params": {name: _jsonable(getattr(model, name)) for name in _PARAMS},
+            "cases": list(model.cases_),
+            "rejected": dict(model.rejected_),
+            "checksums": {str(p.relative_to(tmp)): _sha256(p) for p in _files(tmp)},
+        }
+        (tmp / "model.json").write_text(json.dumps(meta, indent=2, sort_keys=True))
+        if path.exists():
+            old = Path(tempfile.mkdtemp(prefix=f".{path.name}.old-", dir=path.parent))
+            os.replace(path, old / path.name)
+            os.replace(tmp, path)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.replace(tmp, path)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return path
+
+
+def load_model(cls, path: Path):
+    from medseg.detection import LandmarkDetector
+    from medseg.shape import TripletPrior
+
+    path = Path(path)
+    meta_path = path / "model.json"
+    if not meta_path.is_file():
+        raise ModelFileError(
+            f"{path} is not a medseg model folder (no model.json); train one with medseg-train"
+        )
+    try:
+        meta = json.loads(meta_path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ModelFileError(f"{meta_path} is not valid JSON ({exc})") from None
+    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+        raise ModelFileError(f"{meta_path} does not describe a medseg segmentation model")
+    version = meta.get("format_version")
+    if version != FORMAT_VERSION:
+        raise ModelFileError(
+            f"{path} has model format version {version!r} (written by medseg "
+            f"{meta.get('medseg_version', '?')}); this medseg {medseg.__version__} reads "
+            f"version {FORMAT_VERSION}: retrain the model or install the matching medseg"
+        )
+    _verify_checksums(path, meta.get("checksums"))
+
+    model = cls(**meta["params"])
+    with np.load(path / "template.npz", allow_pickle=False) as npz:
+        mask = sitk.GetImageFromArray(npz["mask"])
+        mask.SetSpacing(npz["spacing"].tolist())
+        mask.SetOrigin(npz["origin"].tolist())
+        mask.SetDirection(npz["direction"].tolist())
+        model.template_mask_ = mask
+        model.template_landmarks_ = npz["landmarks"]
+        model.template_surface_ = (npz["vertices"], npz["faces"])
+        model.landmarks_ = npz["training_landmarks"]
+    model.detector_ = LandmarkDetector.load(path / "detector")
+    model.prior_ = TripletPrior.load(path / "prior.npz")
+    model.cases_ = list(meta.get("cases", []))
+    model.rejected_ = dict(meta.get("rejected", {}))
+    return model
+
+
+def _verify_checksums(path: Path, checksums) -> None:
+    if not isinstance(checksums, dict) or not checksums:
+        raise ModelFileError(f"{path}/model.json lists no checksums; the model is incomplete")
+    listed = set(checksums)
+    present = {str(p.relative_to(path)) for p in _files(path)}
+    if listed - present:
+        raise ModelFileError(
+            f"{path} is missing {sorted(listed - present)}; the model folder is incomplete"
+        )
+    total = sum((path / name).stat().st_size for name in listed)
+    if total > MAX_MODEL_BYTES:
+        raise ModelFileError(f"{path} holds {total / 1e9:.1f} GB; refusing to load it")
+    for name in sorted(listed):
+        if _sha256(path / name) != checksums[name]:
+            raise ModelFileError(
+                f"{path / name} does not match its checksum in model.json: the file was "
+                "changed or damaged after saving; do not use it"
+            )
+
+
+def _jsonable(value):
+    if isinstance(value, tuple):
+        return list(value)
+    if isinstance(value, np.generic):
+        return value.item()
+    return value

@@ -1,0 +1,357 @@
+"""The segmenter: landmarks + Random-Forest detectors + triplet shape prior + MRF + TPS.
+
+:class:`ShapePriorSegmenter` composes the parts of the package and nothing else: the
+correspondence step, the detectors, the prior, the solver and the reconstruction know only
+plain arrays and images, and this module is the one place that wires them together.
+
+References
+----------
+C. Wang, O. Teboul, F. Michel, S. Essafi, N. Paragios, "3D knowledge-based segmentation
+using pose-invariant higher-order graphs", MICCAI 2010. doi:10.1007/978-3-642-15711-0_24
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import SimpleITK as sitk
+from scipy.spatial import procrustes
+from sklearn.utils import check_random_state
+from tqdm.auto import tqdm
+
+from medseg import _model_io
+from medseg.correspondence import label_surface, landmarks_from_labels
+from medseg.datasets import Cohort
+from medseg.detection import CandidateSet, LandmarkDetector
+from medseg.errors import CohortError, NotFittedError
+from medseg.io import as_input_type, read_image, select_labels
+from medseg.mrf import MRF, SolveResult, solve
+from medseg.reconstruction import warp_mask, warp_surface
+from medseg.shape import TripletPrior
+
+__all__ = ["ShapePriorSegmenter", "Segmentation", "load_model"]
+
+MIN_TRAINING_CASES = 5
+
+
+@dataclass
+class Segmentation:
+    """The result of :meth:`ShapePriorSegmenter.segment`.
+
+    Attributes
+    ----------
+    label : image
+        Label map (uint8, 1 = structure) in the input image's geometry, of the input's type
+        (SimpleITK image, or nibabel image when a nibabel image was given).
+    landmarks : (N, 3) float array, mm, (x, y, z)
+        The landmarks chosen by the MRF, in the input's physical space.
+    surface : pyvista.PolyData
+        The template surface warped onto ``landmarks`` (mm).
+    candidates : CandidateSet
+        The candidate positions ``(N, L, 3)`` and probabilities ``(N, L)`` per landmark.
+    mrf : SolveResult or None
+        Energy, lower bound, relative gap, iterations of the MRF solve (None without prior).
+    confidence : (N,) float array
+        Per landmark: the margin between its two best min-marginal energies (with the
+        prior) or unary costs (without), i.e. what moving it to its second-best candidate
+        costs at least; small values mark uncertain landmarks.
+    timings : dict
+        Seconds spent in each stage.
+    """
+
+    label: Any
+    landmarks: np.ndarray
+    surface: Any
+    candidates: CandidateSet
+    mrf: SolveResult | None
+    confidence: np.ndarray
+    timings: dict = field(default_factory=dict)
+    image: sitk.Image | None = field(default=None, repr=False)
+
+    def plot(self, *, axis: int = 0, index: int | None = None, ax=None):
+        """Overlay of one slice: image, label contour and nearby landmarks (matplotlib)."""
+        from medseg.viz import plot_overlay
+
+        return plot_overlay(
+            self.image, self.label, landmarks=self.landmarks, axis=axis, index=index, ax=ax
+        )
+
+    def show(self, **kwargs):
+        """Interactive 3D view of the surface and landmarks (pyvista)."""
+        import pyvista as pv
+
+        plotter = pv.Plotter(**kwargs)
+        plotter.add_mesh(self.surface, color="tan", opacity=0.8)
+        plotter.add_points(
+            self.landmarks, color="red", point_size=10, render_points_as_spheres=True
+        )
+        return plotter.show()
+
+
+class ShapePriorSegmenter:
+    """Knowledge-based segmentation with a pose-invariant higher-order shape prior.
+
+    Parameters
+    ----------
+    n_landmarks : int or None, default None
+        Landmarks per shape; None sizes it to the structure (see
+        :func:`medseg.correspondence.landmarks_from_labels`).
+    labels : tuple of int, default (1,)
+        Labels of the training label maps that form the structure (their union).
+    n_candidates : int, default 20
+        Candidates per landmark (L).
+    cliques : {"knn", "delaunay", "all"}, default "knn"
+        Triplet cliques of the prior.
+    density : {"gmm", "gaussian", "parzen"}, default "gmm"
+        Density of the relative-distance invariant per clique.
+    alpha : float, default 1.0
+        Weight of the prior against the detectors' evidence.
+    n_estimators : int, default 60
+        Trees per landmark forest.
+    smoothing : float, default 0.0
+        Thin-plate spline smoothing of the reconstruction.
+    max_iter : int, default 300
+        Iterations of the MRF solver.
+    random_state : int, Generator, RandomState or None
+        Seeds every stochastic step; the same seed gives the same model.
+    n_jobs : int, default 1
+        Parallel jobs for the forests.
+
+    Attributes
+    ----------
+    landmarks_ : (S, N, 3) float array, mm
+        Training landmarks in correspondence.
+    cases_ : list of str
+        Training cases used; ``rejected_`` maps the others to the reason.
+    detector_ : LandmarkDetector
+    prior_ : TripletPrior
+    template_mask_ : SimpleITK image
+        Binary mask of the template (reference) case.
+    template_landmarks_ : (N, 3) float array, mm
+    template_surface_ : tuple of ((V, 3) float array, (F, 3) int array)
+    """
+
+    def __init__(
+        self,
+        n_landmarks: int | None = None,
+        *,
+        labels: tuple[int, ...] = (1,),
+        n_candidates: int = 20,
+        cliques: str = "knn",
+        density: str = "gmm",
+        alpha: float = 1.0,
+        n_estimators: int = 60,
+        smoothing: float = 0.0,
+        max_iter: int = 300,
+        random_state=None,
+        n_jobs: int = 1,
+    ):
+        self.n_landmarks = n_landmarks
+        self.labels = labels
+        self.n_candidates = n_candidates
+        self.cliques = cliques
+        self.density = density
+        self.alpha = alpha
+        self.n_estimators = n_estimators
+        self.smoothing = smoothing
+        self.max_iter = max_iter
+        self.random_state = random_state
+        self.n_jobs = n_jobs
+
+    # -- training ---------------------------------------------------------------------------
+
+    def fit(
+        self, cohort: Cohort, *, landmark_source: str = "auto", progress: bool = False
+    ) -> ShapePriorSegmenter:
+        """Learn landmarks, detectors, prior and template from a cohort.
+
+        Parameters
+        ----------
+        cohort : Cohort
+            Images with label maps (and optionally landmarks) of one structure.
+        landmark_source : {"auto", "cohort", "labels"}, default "auto"
+            "cohort" uses the landmarks each case carries (user files, the phantom's ground
+            truth); "labels" computes landmarks in correspondence from the label maps (cases
+            whose correspondence fails are rejected, see ``rejected_``); "auto" takes the
+            cohort's landmarks when every case has them, else the label maps.
+        progress : bool, default False
+            Show progress bars.
+        """
+        if landmark_source not in ("auto", "cohort", "labels"):
+            raise ValueError("`landmark_source` must be 'auto', 'cohort' or 'labels'.")
+        if len(cohort) < MIN_TRAINING_CASES:
+            raise CohortError(
+                f"cohort {cohort.name!r} has {len(cohort)} cases; training needs at least "
+                f"{MIN_TRAINING_CASES}"
+            )
+        rng = check_random_state(self.random_state)
+        timings: dict[str, float] = {}
+        t0 = time.perf_counter()
+        images, masks = [], []
+        for case in tqdm(cohort, desc="reading cases", disable=not progress):
+            image = case.load_image()
+            images.append(image)
+            masks.append(select_labels(case.load_label(), self.labels))
+        timings["read"] = time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        given = [case.load_landmarks() for case in cohort]
+        use_given = landmark_source == "cohort" or (
+            landmark_source == "auto" and all(lm is not None for lm in given)
+        )
+        if use_given:
+            keep, landmarks, ref = _given_landmarks(cohort, given)
+            self.rejected_ = {}
+        else:
+            corr = landmarks_from_labels(
+                masks, n_landmarks=self.n_landmarks, labels=(1,), random_state=rng
+            )
+            keep = ~np.asarray(corr.failed)
+            landmarks = np.asarray(corr.landmarks)
+            ref = int(corr.reference_index)
+            self.rejected_ = {
+                cohort[i].case_id: f"correspondence residual {corr.residuals_mm[i]:.2f} mm"
+                for i in np.flatnonzero(~keep)
+            }
+        if keep.sum() < MIN_TRAINING_CASES:
+            raise CohortError(
+                f"only {int(keep.sum())} cases of {cohort.name!r} have landmarks in "
+                f"correspondence; training needs at least {MIN_TRAINING_CASES}"
+            )
+        self.cases_ = [cohort[i].case_id for i in np.flatnonzero(keep)]
+        self.landmarks_ = landmarks[keep]
+        self.template_mask_ = masks[ref]
+        self.template_landmarks_ = landmarks[ref]
+        self.template_surface_ = label_surface(masks[ref])
+        timings["landmarks"] = time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        kept_images = [images[i] for i in np.flatnonzero(keep)]
+        self.detector_ = LandmarkDetector(
+            n_estimators=self.n_estimators, random_state=rng, n_jobs=self.n_jobs
+        ).fit(kept_images, list(self.landmarks_))
+        timings["detectors"] = time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        self.prior_ = TripletPrior(
+            cliques=self.cliques, density=self.density, alpha=self.alpha, random_state=rng
+        ).fit(self.landmarks_)
+        timings["prior"] = time.perf_counter() - t0
+        self.fit_timings_ = timings
+        return self
+
+    # -- inference --------------------------------------------------------------------------
+
+    def segment(self, image, *, use_prior: bool = True) -> Segmentation:
+        """Segment one image, with no pose initialisation.
+
+        Parameters
+        ----------
+        image : path, SimpleITK image or nibabel image
+        use_prior : bool, default True
+            False places each landmark at its best candidate (the detection-only
+            baseline); True minimises the higher-order MRF.
+        """
+        self._check_is_fitted()
+        source = image
+        image = read_image(image)
+        timings: dict[str, float] = {}
+
+        t0 = time.perf_counter()
+        cands = self.detector_.candidates(image, n_candidates=self.n_candidates)
+        timings["detection"] = time.perf_counter() - t0
+
+        n = cands.positions.shape[0]
+        unaries = cands.unaries()
+        result = None
+        if use_prior:
+            t0 = time.perf_counter()
+            tables = self.prior_.potential_tables(cands.positions)
+            timings["potentials"] = time.perf_counter() - t0
+            t0 = time.perf_counter()
+            problem = MRF.from_triplets(unaries, self.prior_.cliques_, tables)
+            result = solve(problem, max_iter=self.max_iter)
+            timings["mrf"] = time.perf_counter() - t0
+            choice = np.asarray(result.x)
+            confidence = _margin(result.min_marginals)
+        else:
+            choice = np.argmin(unaries, axis=1)
+            confidence = _margin(unaries)
+        landmarks = cands.positions[np.arange(n), choice]
+
+        t0 = time.perf_counter()
+        label = warp_mask(
+            self.template_mask_,
+            self.template_landmarks_,
+            landmarks,
+            image,
+            smoothing=self.smoothing,
+        )
+        vertices, faces = self.template_surface_
+        surface = warp_surface(
+            vertices, faces, self.template_landmarks_, landmarks, smoothing=self.smoothing
+        )
+        timings["reconstruction"] = time.perf_counter() - t0
+        return Segmentation(
+            label=as_input_type(label, like=source),
+            landmarks=landmarks,
+            surface=surface,
+            candidates=cands,
+            mrf=result,
+            confidence=confidence,
+            timings=timings,
+            image=image,
+        )
+
+    # -- persistence ------------------------------------------------------------------------
+
+    def save(self, path: str | Path) -> Path:
+        """Write the model to a folder (JSON + NPZ + skops, checksummed, no pickle)."""
+        self._check_is_fitted()
+        return _model_io.save_model(self, Path(path))
+
+    @classmethod
+    def load(cls, path: str | Path) -> ShapePriorSegmenter:
+        """Read a model written by :meth:`save`; checksums and format version are verified."""
+        return _model_io.load_model(cls, Path(path))
+
+    def _check_is_fitted(self) -> None:
+        if not hasattr(self, "detector_"):
+            raise NotFittedError(
+                "this ShapePriorSegmenter is not fitted yet: call fit(cohort) or load a model"
+            )
+
+
+def load_model(path: str | Path) -> ShapePriorSegmenter:
+    """Load a segmentation model saved with :meth:`ShapePriorSegmenter.save`."""
+    return ShapePriorSegmenter.load(path)
+
+
+def _given_landmarks(cohort: Cohort, given: list) -> tuple[np.ndarray, np.ndarray, int]:
+    """Stack user landmarks; the template is the Procrustes medoid of the shapes."""
+    missing = [case.case_id for case, lm in zip(cohort, given, strict=True) if lm is None]
+    if missing:
+        raise CohortError(f"cases without landmarks: {', '.join(missing[:5])}")
+    counts = {np.asarray(lm).shape for lm in given}
+    if len(counts) != 1:
+        raise CohortError(f"cases carry different numbers of landmarks: {sorted(counts)}")
+    landmarks = np.stack([np.asarray(lm, dtype=float) for lm in given])
+    n = len(landmarks)
+    disparity = np.zeros((n, n))
+    for i in range(n):
+        for j in range(i + 1, n):
+            disparity[i, j] = disparity[j, i] = procrustes(landmarks[i], landmarks[j])[2]
+    return np.ones(n, dtype=bool), landmarks, int(np.argmin(disparity.sum(axis=1)))
+
+
+def _margin(costs: np.ndarray) -> np.ndarray:
+    """Per row: the second-smallest cost minus the smallest (0 for a single label)."""
+    costs = np.sort(np.asarray(costs, dtype=float), axis=1)
+    if costs.shape[1] < 2:
+        return np.zeros(len(costs))
+    margin = costs[:, 1] - costs[:, 0]
+    return np.where(np.isfinite(margin), margin, 0.0)

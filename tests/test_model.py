@@ -1,0 +1,192 @@
+"""The segmenter end to end on a small phantom: geometry, persistence, errors, CLIs."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import nibabel as nib
+import numpy as np
+import pytest
+import SimpleITK as sitk
+
+import medseg
+from inference.cli import main as segment_main
+from medseg.datasets import make_phantom_cohort, write_cohort
+from medseg.errors import CohortError, ModelFileError, NotFittedError
+from medseg.io import image_geometry, read_image, read_landmarks
+from medseg.model import ShapePriorSegmenter, load_model
+from training.cli import main as train_main
+
+SMALL = dict(n_landmarks=12, size=48)
+
+
+@pytest.fixture(scope="module")
+def cohort():
+    return make_phantom_cohort(8, random_state=1, **SMALL)
+
+
+@pytest.fixture(scope="module")
+def fitted(cohort):
+    model = ShapePriorSegmenter(n_estimators=6, n_candidates=8, max_iter=100, random_state=0)
+    return model.fit(cohort[:6])
+
+
+@pytest.fixture(scope="module")
+def saved(fitted, tmp_path_factory) -> Path:
+    return fitted.save(tmp_path_factory.mktemp("model") / "model")
+
+
+def test_segmentation_is_in_the_input_geometry_with_a_certified_bound(fitted, cohort):
+    image = cohort[7].load_image()
+    seg = fitted.segment(image)
+    assert image_geometry(seg.label) == image_geometry(image)
+    assert seg.landmarks.shape == (12, 3)
+    assert seg.candidates.positions.shape == (12, 8, 3)
+    assert seg.mrf.lower_bound <= seg.mrf.energy + 1e-6
+    assert seg.confidence.shape == (12,) and np.all(seg.confidence >= 0)
+    assert sitk.GetArrayViewFromImage(seg.label).any()
+
+
+def test_oblique_anisotropic_input_keeps_its_geometry(fitted):
+    other = make_phantom_cohort(1, random_state=5, anisotropic=True, oblique=True, **SMALL)
+    image = other[0].load_image()
+    assert image.GetSpacing()[2] != image.GetSpacing()[0]
+    seg = fitted.segment(image)
+    assert image_geometry(seg.label) == image_geometry(image)
+
+
+def test_nibabel_in_nibabel_out(fitted, cohort):
+    from medseg.io import to_nibabel
+
+    nii = to_nibabel(cohort[7].load_image())
+    seg = fitted.segment(nii)
+    assert isinstance(seg.label, nib.Nifti1Image)
+    np.testing.assert_allclose(seg.label.affine, nii.affine, atol=1e-6)
+
+
+def test_same_seed_same_model(cohort, fitted):
+    again = ShapePriorSegmenter(n_estimators=6, n_candidates=8, max_iter=100, random_state=0)
+    again.fit(cohort[:6])
+    image = cohort[6].load_image()
+    np.testing.assert_array_equal(fitted.segment(image).landmarks, again.segment(image).landmarks)
+
+
+def test_save_load_round_trip(fitted, saved, cohort):
+    loaded = load_model(saved)
+    image = cohort[6].load_image()
+    a, b = fitted.segment(image), loaded.segment(image)
+    np.testing.assert_array_equal(a.landmarks, b.landmarks)
+    np.testing.assert_array_equal(sitk.GetArrayFromImage(a.label), sitk.GetArrayFromImage(b.label))
+    assert not any(p.suffix == ".pkl" for p in saved.rglob("*"))
+
+
+def test_tampered_or_foreign_model_files_are_refused(saved, tmp_path):
+    copy = shutil.copytree(saved, tmp_path / "copy")
+    with open(copy / "template.npz", "r+b") as fh:
+        fh.seek(100)
+        fh.write(b"\x00\x01\x02")
+    with pytest.raises(ModelFileError, match="checksum"):
+        load_model(copy)
+
+    future = shutil.copytree(saved, tmp_path / "future")
+    meta = json.loads((future / "model.json").read_text())
+    meta["format_version"] = 99
+    (future / "model.json").write_text(json.dumps(meta))
+    with pytest.raises(ModelFileError, match="version 99"):
+        load_model(future)
+
+    with pytest.raises(ModelFileError, match="not a medseg model"):
+        load_model(tmp_path)
+
+
+def test_unfitted_and_too_small(cohort):
+    with pytest.raises(NotFittedError):
+        ShapePriorSegmenter().segment(cohort[0].load_image())
+    with pytest.raises(CohortError, match="at least"):
+        ShapePriorSegmenter().fit(cohort[:3])
+
+
+def test_cli_train_then_segment_a_folder(cohort, saved, tmp_path, capsys):
+    data = write_cohort(cohort[6:8], tmp_path / "data")
+    images = data / "imagesTr"
+    out = tmp_path / "out"
+    bad = images / "broken_0000.nii.gz"
+    bad.write_bytes(b"not a nifti file")
+
+    code = segment_main(
+        [
+            "-m",
+            str(saved),
+            "-i",
+            str(images),
+            "-o",
+            str(out),
+            "--save-landmarks",
+            "mrk.json",
+            "--save-surface",
+            "vtk",
+            "-q",
+        ]
+    )
+    err = capsys.readouterr().err
+    assert code == 1  # one bad file: reported, skipped, the others written
+    assert "broken_0000.nii.gz" in err and "Traceback" not in err
+    for case in cohort[6:8]:
+        label = read_image(out / f"{case.case_id}.nii.gz")
+        source = read_image(images / f"{case.case_id}_0000.nii.gz")
+        assert image_geometry(label) == image_geometry(source)
+        assert read_landmarks(out / f"{case.case_id}.mrk.json").shape == (12, 3)
+        assert (out / f"{case.case_id}.vtk").is_file()
+    assert not (out / "broken.nii.gz").exists()
+    assert not [p for p in out.iterdir() if p.name.startswith(".")]
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["-m", "{model}", "-i", "{missing}", "-o", "{out}"], "does not exist"),
+        (["-m", "{tmp}", "-i", "{image}", "-o", "{out}"], "not a medseg model"),
+        (["-m", "{model}", "-i", "{flat}", "-o", "{out}"], "3D"),
+    ],
+)
+def test_cli_bad_input_is_one_line_and_nonzero(argv, message, saved, cohort, tmp_path, capsys):
+    image = tmp_path / "case.nii.gz"
+    sitk.WriteImage(cohort[7].load_image(), str(image))
+    flat = tmp_path / "flat.nii.gz"
+    sitk.WriteImage(sitk.Image(10, 10, sitk.sitkFloat32), str(flat))
+    paths = dict(
+        model=saved,
+        missing=tmp_path / "nope.nii.gz",
+        out=tmp_path / "o.nii.gz",
+        tmp=tmp_path,
+        image=image,
+        flat=flat,
+    )
+    code = segment_main([a.format(**paths) for a in argv])
+    err = capsys.readouterr().err.strip()
+    assert code == 2
+    assert len(err.splitlines()) == 1 and message in err
+    assert not (tmp_path / "o.nii.gz").exists()
+
+
+def test_cli_train_on_a_dataset_folder(cohort, tmp_path, capsys):
+    data = write_cohort(cohort[:6], tmp_path / "data")
+    code = train_main(
+        [
+            str(data),
+            "-o",
+            str(tmp_path / "m"),
+            "--landmarks",
+            "12",
+            "--candidates",
+            "6",
+            "--seed",
+            "3",
+            "-q",
+        ]
+    )
+    assert code == 0, capsys.readouterr().err
+    assert "trained on 6 of 6 cases" in capsys.readouterr().out
+    assert medseg.load_model(tmp_path / "m").landmarks_.shape == (6, 12, 3)
