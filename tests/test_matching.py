@@ -332,3 +332,35 @@ def test_matcher_recovers_isometric_bend():
     assert np.mean(err) < 0.03
     assert res.forward.shape == (len(v),) and res.inverse.shape == (len(v),)
     assert res.sparse.lower_bound <= res.sparse.energy + 1e-9
+
+
+# --- command line ---------------------------------------------------------------------------
+
+
+def test_cli_writes_one_index_per_vertex(tmp_path, capsys):
+    from inference.match_cli import main
+
+    v, f = check_mesh(*_bumpy(2))
+    rot = Rotation.from_euler("y", 25, degrees=True).as_matrix()
+    write_mesh(tmp_path / "a.stl", v, f)
+    write_mesh(tmp_path / "b.vtk", v @ rot.T, f)
+    out, inv = tmp_path / "map.txt", tmp_path / "inv.txt"
+    argv = [str(tmp_path / "a.stl"), str(tmp_path / "b.vtk"), "-o", str(out)]
+    assert main(argv + ["--inverse", str(inv), "--n-sparse", "10", "-q"]) == 0
+    va, _ = read_mesh(tmp_path / "a.stl")
+    fwd = np.loadtxt(out, dtype=int)
+    assert fwd.shape == (len(va),) and fwd.min() >= 0 and fwd.max() < len(v)
+    assert np.loadtxt(inv, dtype=int).shape == (len(v),)
+    assert "lower bound" in capsys.readouterr().out
+    # refusing to overwrite an input, and a bad mesh: one line, exit code 2, no output
+    assert (
+        main([str(tmp_path / "a.stl"), str(tmp_path / "b.vtk"), "-o", str(tmp_path / "a.stl")]) == 2
+    )
+    (tmp_path / "bad.off").write_text("OFF\n4 1 0\n0 0 0\n1 0 0\n0 1 0\n0 0 1\n0 1 2 3\n")
+    assert (
+        main([str(tmp_path / "bad.off"), str(tmp_path / "b.vtk"), "-o", str(tmp_path / "x.txt")])
+        == 2
+    )
+    err = capsys.readouterr().err
+    assert err.count("\n") == 2 and "medseg-match: error" in err
+    assert not (tmp_path / "x.txt").exists()

@@ -19,6 +19,7 @@ from numpy.typing import ArrayLike
 from scipy.sparse.linalg import splu
 from scipy.spatial import cKDTree
 from sklearn.utils import check_random_state
+from tqdm.auto import tqdm
 
 from medseg.errors import ProblemDefinitionError
 from medseg.matching._conformal import conformal_flatten, to_riemann_sphere
@@ -139,6 +140,8 @@ class SurfaceMatch:
     ----------
     forward : (V_A,) int array
         0-based index of the vertex of B matched to each vertex of A.
+    forward_unrefined : (V_A,) int array
+        The dense stage's map before the spectral refinement (the paper's pipeline alone).
     inverse : (V_B,) int array
         For each vertex of B, the vertex of A whose image is nearest to it on B.
     sparse_pairs : (P, 2) int array
@@ -155,6 +158,7 @@ class SurfaceMatch:
     """
 
     forward: np.ndarray
+    forward_unrefined: np.ndarray
     inverse: np.ndarray
     sparse_pairs: np.ndarray
     sparse: SolveResult
@@ -469,11 +473,13 @@ def match_surfaces(
         "progress": progress,
     }
     timings = {}
+    bar = tqdm(total=5, desc="matching", disable=not progress, leave=False)
     t0 = time.perf_counter()
     n_s = max(n_align, n_sparse_targets)
     a = prepare_surface(vertices_a, faces_a, name="surface A", n_samples=n_s, random_state=rng)
     b = prepare_surface(vertices_b, faces_b, name="surface B", n_samples=n_s, random_state=rng)
     timings["prepare"] = time.perf_counter() - t0
+    bar.update(1)
     t0 = time.perf_counter()
     pairs, sparse_res = _sparse_stage(
         a,
@@ -487,6 +493,7 @@ def match_surfaces(
         rng=rng,
     )
     timings["sparse"] = time.perf_counter() - t0
+    bar.update(1)
     if len(pairs) < 3:
         raise ProblemDefinitionError(
             f"the sparse stage matched only {len(pairs)} points; the surfaces are too "
@@ -497,16 +504,22 @@ def match_surfaces(
     votes, weights = _votes(a, b, pairs, trip, cost)
     modes, dens = _modes(b, votes, weights, n_modes=n_modes, radius=mode_radius)
     timings["candidates"] = time.perf_counter() - t0
+    bar.update(1)
     t0 = time.perf_counter()
     forward, dense_res, frac = _dense_stage(a, b, modes, dens, opts=opts)
     timings["dense"] = time.perf_counter() - t0
+    bar.update(1)
+    unrefined = forward
     if refine:
         t0 = time.perf_counter()
         forward = spectral_refine(forward, a.evecs, vertex_areas(a.vertices, a.faces), b.evecs)
         timings["refine"] = time.perf_counter() - t0
+    bar.update(1)
+    bar.close()
     _, inv = cKDTree(b.vertices[forward]).query(b.vertices)
     return SurfaceMatch(
         forward=forward,
+        forward_unrefined=unrefined,
         inverse=np.asarray(inv, dtype=np.int64),
         sparse_pairs=pairs,
         sparse=sparse_res,

@@ -8,7 +8,6 @@ small built-in reader/writer for OFF, which pyvista cannot read without meshio.
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +17,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from medseg.errors import InputFileError, MeshError
+from medseg.io import atomic_write
 
 __all__ = ["read_mesh", "write_mesh", "check_mesh", "MESH_SUFFIXES"]
 
@@ -114,7 +114,7 @@ def read_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
 
 
 def write_mesh(path: str | os.PathLike, vertices: ArrayLike, faces: ArrayLike) -> None:
-    """Write a triangle mesh atomically (temporary file in the target folder, then rename).
+    """Write a triangle mesh atomically (:func:`medseg.io.atomic_write`).
 
     Parameters
     ----------
@@ -131,9 +131,7 @@ def write_mesh(path: str | os.PathLike, vertices: ArrayLike, faces: ArrayLike) -
         )
     vertices = np.asarray(vertices, dtype=float)
     faces = np.asarray(faces, dtype=np.int64)
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=suffix, dir=path.parent or ".")
-    os.close(fd)
-    try:
+    with atomic_write(path) as tmp:
         if suffix == ".off":
             with open(tmp, "w", encoding="ascii") as fh:
                 fh.write(f"OFF\n{len(vertices)} {len(faces)} 0\n")
@@ -141,11 +139,7 @@ def write_mesh(path: str | os.PathLike, vertices: ArrayLike, faces: ArrayLike) -
                 np.savetxt(fh, np.column_stack([np.full(len(faces), 3), faces]), fmt="%d")
         else:
             cells = np.column_stack([np.full(len(faces), 3), faces]).ravel()
-            pv.PolyData(vertices, cells).save(tmp)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
+            pv.PolyData(vertices, cells).save(str(tmp))
 
 
 def _edges(faces: np.ndarray) -> np.ndarray:

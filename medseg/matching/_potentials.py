@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import ArrayLike
+from scipy.spatial import cKDTree
 
 from medseg.errors import ProblemDefinitionError
 from medseg.matching._conformal import (
@@ -96,7 +97,7 @@ def mobius_potentials(
     delta : float
         Chordal distance on the unit sphere under which two points can be paired.
     chunk : int
-        Number of (triplet, label) pairs evaluated at once (memory: chunk * n_A * n_B).
+        Number of (triplet, label) pairs projected at once (memory: chunk * n_B * 3).
 
     Returns
     -------
@@ -120,28 +121,24 @@ def mobius_potentials(
     t_count, c_count = labels.shape[:2]
     m_a, bad_a = _canonical_unchecked(z_a[triplets])  # (T, 2, 2)
     m_b, bad_b = _canonical_unchecked(z_b[labels])  # (T, C, 2, 2)
-    flat_t = np.repeat(np.arange(t_count), c_count)
     flat_mb = m_b.reshape(-1, 2, 2)
-    out = np.empty(t_count * c_count)
+    out = np.full(t_count * c_count, cap)
     zsa, zsb = z_a[sa], z_b[sb]
+    ar = np.arange(len(sa))
     # sphere points of A depend on the triplet only
-    pa_all = to_riemann_sphere(zsa[None, :], m_a).astype(np.float32)  # (T, n_A, 3)
-    for start in range(0, len(flat_t), chunk):
-        stop = min(start + chunk, len(flat_t))
-        pa = pa_all[flat_t[start:stop]]  # (B, n_A, 3)
-        pb = to_riemann_sphere(zsb[None, :], flat_mb[start:stop]).astype(np.float32)
-        d2 = np.maximum(2.0 - 2.0 * np.einsum("bic,bjc->bij", pa, pb), 0.0)
-        nn_ab = np.argmin(d2, axis=2)  # (B, n_A)
-        nn_ba = np.argmin(d2, axis=1)  # (B, n_B)
-        rows = np.arange(stop - start)[:, None]
-        mutual = nn_ba[rows, nn_ab] == np.arange(len(sa))[None, :]
-        dist = np.sqrt(d2[rows, np.arange(len(sa))[None, :], nn_ab])
-        ok = mutual & (dist < delta)
-        count = ok.sum(axis=1)
-        energy = np.where(ok, dist, 0.0).sum(axis=1)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            theta = n * energy / (delta * count.astype(float) ** 2)
-        out[start:stop] = np.where(count > 0, np.minimum(theta, cap), cap)
+    pa_all = to_riemann_sphere(zsa[None, :], m_a)  # (T, n_A, 3)
+    trees_a = [cKDTree(p) for p in pa_all]
+    for start in range(0, len(flat_mb), chunk):
+        stop = min(start + chunk, len(flat_mb))
+        pb_chunk = to_riemann_sphere(zsb[None, :], flat_mb[start:stop])  # (B, n_B, 3)
+        for r, pb in enumerate(pb_chunk):
+            idx = start + r
+            dist, nn_ab = cKDTree(pb).query(pa_all[idx // c_count])
+            _, nn_ba = trees_a[idx // c_count].query(pb)
+            ok = (nn_ba[nn_ab] == ar) & (dist < delta)
+            count = int(ok.sum())
+            if count:
+                out[idx] = min(n * dist[ok].sum() / (delta * count**2), cap)
     out = out.reshape(t_count, c_count)
     repeated = (
         (labels[..., 0] == labels[..., 1])

@@ -1,0 +1,204 @@
+"""Benchmark of the surface matcher against a functional-map baseline on FAUST / TOSCA.
+
+Protocol (``data/shapes/README.md``, Kim, Lipman & Funkhouser 2011): for a map T from A to
+B and each ground-truth row i, ``err_i = geodesic_B(T(A.vts[i]), B.vts[i]) / sqrt(area(B))``
+with heat-method geodesics on B; the mean over rows and pairs, the fraction of rows with
+``err <= t`` for a few thresholds, direct and symmetry-aware (per pair, the better of the
+direct and the mirrored ground truth). Also the log area ratio of matched facets (mean
+``|log(area(T(f)) / area(f))|`` on unit-area surfaces, over faces whose image is not
+degenerate, plus the fraction of degenerate images).
+
+Methods, all in the same run on the same pairs:
+
+* ``medseg``: :func:`medseg.matching.match_surfaces` (default options, with the spectral
+  refinement);
+* ``medseg-norefine``: the same run's map before the refinement (the paper's pipeline);
+* ``pyfmaps``: functional maps with WKS descriptors, orientation term and ZoomOut (pyfmaps
+  1.3.1, an optional benchmark-only dependency: ``pip install pyfmaps==1.3.1``).
+
+Pairs: a fixed random subset (``--n-pairs``, ``--seed``) of each set's ``test_pairs.txt``.
+Results are appended to ``<out>/pairs.jsonl`` as each pair finishes (a time-boxed run still
+leaves usable numbers; ``--resume`` skips pairs already there); ``--summarise`` prints the
+aggregate table from that file.
+
+Usage::
+
+    python benchmarks/bench_matching.py --n-pairs 50 --out /tmp/bench_matching
+    python benchmarks/bench_matching.py --out /tmp/bench_matching --summarise
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from itertools import zip_longest
+from pathlib import Path
+
+import numpy as np
+
+from medseg.matching import GeodesicSolver, face_areas, match_surfaces, read_mesh
+
+THRESHOLDS = (0.0, 0.025, 0.05, 0.075, 0.1, 0.15, 0.2, 0.25)
+SETS = ("FAUST", "TOSCA_Isometric")
+
+
+def _default_data() -> Path:
+    env = os.environ.get("MEDSEG_DATA")
+    root = Path(env) if env else Path(__file__).resolve().parents[1].parent / "shared" / "data"
+    return root / "shapes"
+
+
+def _pyfmaps(path_a: Path, path_b: Path) -> np.ndarray:
+    from pyFM.functional import FunctionalMapping
+    from pyFM.mesh import TriMesh
+
+    mesh_a, mesh_b = TriMesh.load(str(path_a)), TriMesh.load(str(path_b))
+    model = FunctionalMapping(mesh_b, mesh_a)  # get_p2p: vertices of A -> vertices of B
+    model.preprocess(n_descr=100, descr_type="WKS", k_process=200, subsample_step=5, verbose=False)
+    model.fit(K=(35, 35), w_descr=1, w_lap=1e-2, w_dcomm=1e-1, w_orient=1, verbose=False)
+    fmap = model.zoomout_refine(nit=15, step=10, verbose=False)
+    return np.asarray(model.get_p2p(FM=fmap), dtype=np.int64)
+
+
+def _log_area_ratio(va, fa, vb, fb, forward) -> tuple[float, float]:
+    area_a = face_areas(va, fa) / face_areas(va, fa).sum()
+    area_b = face_areas(vb[forward], fa) / face_areas(vb, fb).sum()
+    ok = area_b > 1e-12
+    return float(np.mean(np.abs(np.log(area_b[ok] / area_a[ok])))), float(1 - ok.mean())
+
+
+def _score(vb, fb, gt_a, gt_b, gt_sym, maps: dict) -> dict:
+    geo = GeodesicSolver(vb, fb)
+    scale = np.sqrt(face_areas(vb, fb).sum())
+    images = {name: fwd[gt_a] for name, fwd in maps.items()}
+    direct = {name: np.empty(len(gt_a)) for name in maps}
+    sym = {name: np.empty(len(gt_a)) for name in maps}
+    for gt, out in ((gt_b, direct), (gt_sym, sym)):
+        for src in np.unique(gt):
+            rows = np.flatnonzero(gt == src)
+            field = geo.distance(src)
+            for name in maps:
+                out[name][rows] = field[images[name][rows]] / scale
+    result = {}
+    for name in maps:
+        d, s = direct[name], sym[name]
+        best = s if s.mean() < d.mean() else d
+        result[name] = {
+            "direct_mean": float(d.mean()),
+            "sym_mean": float(best.mean()),
+            "direct_curve": [float(np.mean(d <= t)) for t in THRESHOLDS],
+            "sym_curve": [float(np.mean(best <= t)) for t in THRESHOLDS],
+        }
+    return result
+
+
+def run(args: argparse.Namespace) -> None:
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    log = out / "pairs.jsonl"
+    done = set()
+    if args.resume and log.exists():
+        done = {(r["set"], r["a"], r["b"]) for r in map(json.loads, log.read_text().splitlines())}
+    rng = np.random.RandomState(args.seed)
+    per_set = []
+    for name in args.sets:
+        folder = Path(args.data) / name
+        pairs = [ln.split() for ln in (folder / "test_pairs.txt").read_text().splitlines() if ln]
+        pick = rng.permutation(len(pairs))[: args.n_pairs]
+        per_set.append([(name, *pairs[i]) for i in pick])
+    # interleave the sets so a time-boxed run covers both
+    jobs = [job for group in zip_longest(*per_set) for job in group if job is not None]
+    deadline = time.time() + 60 * args.minutes if args.minutes else np.inf
+    for set_name, a, b in jobs:
+        if (set_name, a, b) in done:
+            continue
+        if time.time() > deadline:
+            print("time budget reached; stopping", file=sys.stderr)
+            break
+        folder = Path(args.data) / set_name
+        pa, pb = folder / f"{a}.off", folder / f"{b}.off"
+        va, fa = read_mesh(pa)
+        vb, fb = read_mesh(pb)
+        gt_a = np.loadtxt(folder / "corres" / f"{a}.vts", dtype=np.int64) - 1
+        gt_b = np.loadtxt(folder / "corres" / f"{b}.vts", dtype=np.int64) - 1
+        gt_sym = np.loadtxt(folder / "corres" / f"{b}.sym.vts", dtype=np.int64) - 1
+        maps, seconds, extra = {}, {}, {}
+        if "medseg" in args.methods:
+            t0 = time.perf_counter()
+            res = match_surfaces(va, fa, vb, fb, random_state=args.seed)
+            seconds["medseg"] = time.perf_counter() - t0
+            seconds["medseg-norefine"] = seconds["medseg"] - res.timings.get("refine", 0.0)
+            maps["medseg"], maps["medseg-norefine"] = res.forward, res.forward_unrefined
+            extra = {
+                "sparse_gap": res.sparse.gap,
+                "dense_gap": res.dense.gap,
+                "one_to_one": res.one_to_one_fraction,
+                "timings": res.timings,
+            }
+        if "pyfmaps" in args.methods:
+            t0 = time.perf_counter()
+            maps["pyfmaps"] = _pyfmaps(pa, pb)
+            seconds["pyfmaps"] = time.perf_counter() - t0
+        scores = _score(vb, fb, gt_a, gt_b, gt_sym, maps)
+        for name, fwd in maps.items():
+            scores[name]["seconds"] = seconds[name]
+            scores[name]["log_area_ratio"], scores[name]["degenerate"] = _log_area_ratio(
+                va, fa, vb, fb, fwd
+            )
+        record = {"set": set_name, "a": a, "b": b, "scores": scores, "medseg_info": extra}
+        with open(log, "a") as fh:
+            fh.write(json.dumps(record) + "\n")
+        print(
+            f"{set_name} {a}->{b}: "
+            + ", ".join(
+                f"{n} {s['direct_mean']:.3f}/{s['seconds']:.0f}s" for n, s in scores.items()
+            ),
+            file=sys.stderr,
+        )
+
+
+def summarise(args: argparse.Namespace) -> None:
+    records = [json.loads(ln) for ln in (Path(args.out) / "pairs.jsonl").read_text().splitlines()]
+    header = "set  method  pairs  direct  sym  " + "  ".join(f"<={t}" for t in THRESHOLDS[1:])
+    print(header + "  log-area  s/pair")
+    for set_name in SETS:
+        recs = [r for r in records if r["set"] == set_name]
+        if not recs:
+            continue
+        for method in recs[0]["scores"]:
+            s = [r["scores"][method] for r in recs if method in r["scores"]]
+            curve = np.mean([x["direct_curve"] for x in s], axis=0)
+            print(
+                f"{set_name}  {method}  {len(s)}  {np.mean([x['direct_mean'] for x in s]):.4f}  "
+                f"{np.mean([x['sym_mean'] for x in s]):.4f}  "
+                + "  ".join(f"{c:.3f}" for c in curve[1:])
+                + f"  {np.mean([x['log_area_ratio'] for x in s]):.3f}"
+                + f"  {np.mean([x['seconds'] for x in s]):.1f}"
+            )
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--data", default=str(_default_data()), help="shapes folder")
+    parser.add_argument("--sets", nargs="+", default=list(SETS))
+    parser.add_argument("--methods", nargs="+", default=["medseg", "pyfmaps"])
+    parser.add_argument("--n-pairs", type=int, default=50, help="pairs per set (default 50)")
+    parser.add_argument("--seed", type=int, default=0, help="pair subset and matcher seed")
+    parser.add_argument("--minutes", type=float, default=0, help="time budget (0: none)")
+    parser.add_argument("--out", default="/tmp/bench_matching", help="results folder")
+    parser.add_argument("--resume", action="store_true", help="skip pairs already scored")
+    parser.add_argument("--summarise", action="store_true", help="only print the summary")
+    args = parser.parse_args(argv)
+    if args.summarise:
+        summarise(args)
+    else:
+        run(args)
+        summarise(args)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
