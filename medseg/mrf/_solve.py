@@ -20,7 +20,7 @@ __all__ = ["solve", "estimate_solver_bytes", "METHODS"]
 METHODS = ("srmp", "mplp", "subgradient")
 
 
-def estimate_solver_bytes(mrf: MRF, method: str = "mplp") -> int:
+def estimate_solver_bytes(mrf: MRF, method: str = "srmp") -> int:
     """Peak memory (bytes) :func:`solve` is expected to allocate for ``mrf``.
 
     The working copy of the factor tables (float32) dominates; per-copy and per-factor
@@ -57,7 +57,7 @@ def _solve_iv(mrf, method, max_iter, tol, atol, time_limit, patience):
 def solve(
     mrf: MRF,
     *,
-    method: str = "mplp",
+    method: str = "srmp",
     max_iter: int = 500,
     tol: float = 1e-3,
     atol: float = 1e-9,
@@ -72,7 +72,7 @@ def solve(
     Parameters
     ----------
     mrf : MRF
-    method : {"mplp", "subgradient"}, default "mplp"
+    method : {"srmp", "mplp", "subgradient"}, default "srmp"
         ``"subgradient"``: the paper's reference. The factors are covered greedily by few
         factor trees (each factor in exactly one tree, no cycle through factors), every
         variable's unary is split evenly among its copies, each tree is solved exactly by
@@ -82,9 +82,14 @@ def solve(
         ``"mplp"``: block-coordinate dual ascent on the same local-polytope dual, with the
         factors as blocks (MPLP updates). Factors are coloured so that no two in a colour
         share a variable; one iteration is a sweep over the colours, each colour one batched
-        update. The dual never decreases; usually far fewer iterations are needed.
+        update. The dual never decreases, but it can stall at a point below the LP bound.
+        ``"srmp"``: sequential reweighted message passing (Kolmogorov 2015), the
+        higher-order generalisation of TRW-S: forward and backward passes over the
+        variables, each receiving min-marginal messages from the factors that reach back
+        and sending them an equal share of its belief. Also monotone, with better fixed
+        points than MPLP; the fastest of the three here (see benchmarks/bench_mrf.py).
     max_iter : int, default 500
-        Subgradient steps or MPLP sweeps.
+        Subgradient steps, MPLP sweeps, or SRMP forward+backward pass pairs.
     tol : float, default 1e-3
         Stop when ``energy - lower_bound <= max(tol * |energy|, atol)``.
     atol : float, default 1e-9
@@ -92,7 +97,7 @@ def solve(
         Seconds; reaching it is status 3.
     patience : int, default 20
         Subgradient: steps without a better dual before the step scale halves (status 2
-        once it falls below 1e-3). MPLP: sweeps over which the bound must gain more than
+        once it falls below 1e-3). MPLP / SRMP: iterations over which the bound must gain more than
         ``tol / 100`` of the energy, else status 2.
     local_search : bool, default True
         Polish every improving primal labelling with iterated conditional modes.
@@ -121,7 +126,7 @@ def solve(
     -----
     The working copy of the tables is float32; the loop's bounds are float32 sums, the
     returned ``lower_bound`` and ``min_marginals`` are exact float64 values of the dual at the
-    final (MPLP) or best (subgradient) multipliers. Forbidden (``+inf``) entries are replaced
+    final (MPLP, SRMP) or best (subgradient) multipliers. Forbidden (``+inf``) entries are replaced
     inside the solver by a finite cost larger than any feasible energy.
 
     References
@@ -131,6 +136,9 @@ def solve(
 
     A. Globerson, T. Jaakkola, "Fixing max-product: convergent message passing algorithms
     for MAP LP-relaxations", NIPS 2007.
+
+    V. Kolmogorov, "A new look at reweighted message passing", IEEE TPAMI 37(5), 2015.
+    doi:10.1109/TPAMI.2014.2363465
 
     D. Sontag, T. Meltzer, A. Globerson, T. Jaakkola, Y. Weiss, "Tightening LP relaxations
     for MAP using message passing", UAI 2008 (the cluster form of the MPLP update).

@@ -71,7 +71,7 @@ def solve_srmp(
     stall_tol: float,
     local_search: bool,
     progress,
-    decode_every: int = 1,
+    decode_every: int = 5,
 ) -> SolveResult:
     """SRMP: forward and backward passes of reweighted factor-to-variable messages.
 
@@ -105,7 +105,7 @@ def solve_srmp(
         lb = float(full.min(axis=1).sum())
         best_lb = max(best_lb, lb)
         primal.offer(full.argmin(axis=1))
-        if it % decode_every == 0:
+        if it <= 3 or it % decode_every == 0:
             primal.offer(_sequential_decode(full, scopes, tables, msg, incidence, big))
         hist_e.append(primal.energy)
         hist_lb.append(best_lb)

@@ -43,6 +43,7 @@ def solve_subgradient(
     patience: int,
     min_step_scale: float,
     initial_scale: float = 1.0,
+    decode_every: int = 5,
     local_search: bool,
     progress,
 ) -> SolveResult:
@@ -70,7 +71,7 @@ def solve_subgradient(
     status, it = 1, 0
     while it < max_iter:
         it += 1
-        bel, _ = upward(forest, tables, share + lam)
+        bel, msgs = upward(forest, tables, share + lam)
         dual = float(bel[forest.roots].min(axis=1).sum(dtype=np.float64)) + iso_lb
         if dual > best_lb:
             best_lb, best_lam, since = dual, lam.copy(), 0
@@ -83,6 +84,13 @@ def solve_subgradient(
         cand = votes.argmax(axis=1)
         cand[isolated] = theta[isolated].argmin(axis=1)
         primal.offer(cand)
+        if it <= 3 or it % decode_every == 0:
+            # the labelling minimising the summed min-marginals of the copies
+            mmc = copy_min_marginals(forest, tables, bel, msgs)
+            summed = theta.copy()
+            summed[~isolated] = 0.0
+            np.add.at(summed, cv, mmc - mmc.min(axis=1, keepdims=True))
+            primal.offer(summed.argmin(axis=1))
         hist_e.append(primal.energy)
         hist_lb.append(best_lb)
         progress.update(1)
