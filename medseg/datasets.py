@@ -140,7 +140,12 @@ class Cohort:
         if isinstance(item, slice):
             cases = self.cases[item]
         else:
-            cases = [self.cases[int(i)] for i in np.asarray(item).ravel()]
+            index = np.asarray(item).ravel()
+            if index.dtype == bool:
+                if index.size != len(self.cases):
+                    raise IndexError(f"boolean mask of {index.size} for {len(self.cases)} cases")
+                index = np.flatnonzero(index)
+            cases = [self.cases[int(i)] for i in index]
         return Cohort(cases=cases, labels=dict(self.labels), name=self.name, root=self.root)
 
     @property

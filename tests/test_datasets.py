@@ -191,6 +191,9 @@ def test_msd_labels_and_training_list_without_channel(tmp_path):
     assert list(cohort.subjects) == ["p1", "p1"]
     sub = cohort[np.array([1])]
     assert isinstance(sub, Cohort) and sub.case_ids == ["c1"]
+    assert cohort[cohort.subjects == "p1"].case_ids == ["c2", "c1"]
+    assert cohort[np.array([False, True])].case_ids == ["c1"]
+    assert cohort[1:].case_ids == ["c1"] and cohort[-1].case_id == "c1"
 
 
 def test_csv_manifest(written, tmp_path):
