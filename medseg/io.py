@@ -39,21 +39,12 @@ import SimpleITK as sitk
 from numpy.typing import ArrayLike
 
 from medseg._io_atomic import atomic_write, check_not_protected
-from medseg._io_images import (
-    IMAGE_SUFFIXES,
-    as_input_type,
-    check_image,
-    check_same_geometry,
-    image_suffix,
-    read_image,
-    read_label,
-    resample_like,
-    select_labels,
-    to_nibabel,
-    write_dicom_series,
-    write_image,
-)
+from medseg._io_checks import check_image, check_same_geometry
+from medseg._io_dicom import write_dicom_series
+from medseg._io_images import IMAGE_SUFFIXES, image_suffix, read_image, write_image
+from medseg._io_labels import read_label, resample_like, select_labels
 from medseg._io_landmarks import LANDMARK_SUFFIXES, read_landmarks, write_landmarks
+from medseg._io_nibabel import as_input_type, to_nibabel
 
 __all__ = [
     "voxel_to_physical",
