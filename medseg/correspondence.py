@@ -331,12 +331,12 @@ def landmarks_from_labels(
     n_jobs: int = 1,
     keep_largest: bool = False,
     allow_reflection: bool = False,
-    n_registration_points: int = 600,
+    n_registration_points: int = 1000,
     beta: float = 2.0,
     lam: float = 2.0,
     outlier_weight: float = 0.02,
     affine: bool = True,
-    rank: int | None = 60,
+    rank: int | None = 40,
     max_residual_mm: float | None = None,
     case_ids: Sequence[str] | None = None,
     progress: bool = False,
@@ -365,7 +365,7 @@ def landmarks_from_labels(
     allow_reflection : bool, default False
         Also try the 4 improper principal-axes alignments (mirror images), e.g. to put left
         and right organs in one correspondence.
-    n_registration_points : int, default 600
+    n_registration_points : int, default 1000
         Surface points per case used by the registration (farthest-point subsample).
     beta, lam, outlier_weight : float
         Coherent point drift: kernel width and regularisation (in units of the target's RMS

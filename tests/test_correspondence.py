@@ -20,6 +20,9 @@ from medseg.correspondence import (
 from medseg.errors import CohortError, LabelError, MeshError
 from medseg.io import voxel_to_physical
 
+# the beans are small: fewer registration points keep the tests fast
+FAST = {"n_registration_points": 500}
+
 
 def _grid(size_xyz, spacing, direction=None, centre=(0.0, 0.0, 0.0)) -> sitk.Image:
     image = sitk.Image([int(s) for s in size_xyz], sitk.sitkUInt8)
@@ -83,7 +86,9 @@ def _apply(points, rotation, scale, translation):
 def pair_result():
     a = _bean_label()
     b = _bean_label(stretch=(1.15, 0.95, 1.0))
-    return (a, b), landmarks_from_labels([a, b], n_landmarks=20, reference=0, random_state=0)
+    return (a, b), landmarks_from_labels(
+        [a, b], n_landmarks=20, reference=0, random_state=0, **FAST
+    )
 
 
 # ---------------------------------------------------------------- surfaces
@@ -207,7 +212,7 @@ def test_landmarks_follow_a_similarity_transform_of_the_label_map(pair_result, s
     (a, b), res = pair_result
     rot = Rotation.random(random_state=seed).as_matrix()
     moved = _similarity_resample(b, rot, scale, shift)
-    res2 = landmarks_from_labels([a, moved], n_landmarks=20, reference=0, random_state=0)
+    res2 = landmarks_from_labels([a, moved], n_landmarks=20, reference=0, random_state=0, **FAST)
     np.testing.assert_allclose(res2.landmarks[0], res.landmarks[0])
     err = np.linalg.norm(res2.landmarks[1] - _apply(res.landmarks[1], rot, scale, shift), axis=1)
     # nearest-neighbour resampling moves the boundary by up to a voxel (1 mm here); a
@@ -222,9 +227,9 @@ def test_mirror_images_need_allow_reflection():
     arr = sitk.GetArrayFromImage(a)[:, :, ::-1]  # x -> -x about the centre: mirror image
     m = sitk.GetImageFromArray(np.ascontiguousarray(arr))
     m.CopyInformation(a)
-    proper = landmarks_from_labels([a, m], n_landmarks=15, reference=0, random_state=0)
+    proper = landmarks_from_labels([a, m], n_landmarks=15, reference=0, random_state=0, **FAST)
     mirror = landmarks_from_labels(
-        [a, m], n_landmarks=15, reference=0, random_state=0, allow_reflection=True
+        [a, m], n_landmarks=15, reference=0, random_state=0, allow_reflection=True, **FAST
     )
     expected = mirror.landmarks[0] * [-1.0, 1.0, 1.0]
     err_mirror = np.linalg.norm(mirror.landmarks[1] - expected, axis=1)
@@ -236,7 +241,7 @@ def test_mirror_images_need_allow_reflection():
 
 def test_default_reference_is_the_most_typical_case():
     cases = [_bean_label(stretch=s) for s in [(1.3, 1.0, 1.0), (1.0, 1.0, 1.0), (0.8, 1, 1)]]
-    res = landmarks_from_labels(cases, n_landmarks=12, random_state=0)
+    res = landmarks_from_labels(cases, n_landmarks=12, random_state=0, **FAST)
     assert res.reference_index == 1
     assert res.n_landmarks == 12
 
@@ -255,7 +260,7 @@ def test_no_cases_or_bad_reference_is_a_cohort_error():
 
 def test_failed_cases_are_flagged_by_the_threshold():
     a, b = _bean_label(), _bean_label(stretch=(1.1, 1, 1))
-    res = landmarks_from_labels([a, b], n_landmarks=12, reference=0, max_residual_mm=1e-6)
+    res = landmarks_from_labels([a, b], n_landmarks=12, reference=0, max_residual_mm=1e-6, **FAST)
     assert res.failed.tolist() == [False, True]
     assert not res.success
 
@@ -314,5 +319,5 @@ def test_cohort_landmarks_mixed_files_are_a_cohort_error():
 def test_cohort_landmarks_computed_from_labels_when_absent(pair_result):
     (a, b), res = pair_result
     out = cohort_landmarks(_cohort([a, b], [None, None]), n_landmarks=20, reference=0,
-                           random_state=0)  # fmt: skip
+                           random_state=0, **FAST)  # fmt: skip
     np.testing.assert_allclose(out, res.landmarks)
