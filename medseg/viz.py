@@ -18,7 +18,7 @@ import numpy as np
 import SimpleITK as sitk
 
 from medseg.errors import ImageGeometryError, InputFileError, MedsegError
-from medseg.io import atomic_write, read_image, read_label
+from medseg.io import atomic_write, physical_to_voxel, read_image, read_label
 
 __all__ = ["save_slice_png", "save_cohort_png", "main"]
 
@@ -64,7 +64,16 @@ def _slice_arrays(
     return image2d, label2d, index, float(spacing_zyx[rows] / spacing_zyx[cols])
 
 
-def _draw(axes_row, image2d, label2d, aspect: float, title: str) -> None:
+def _points_near_slice(image: sitk.Image, points, axis: int, index: int) -> np.ndarray | None:
+    """(K, 2) in-slice (row, col) indices of the points within 1 voxel of the slice."""
+    if points is None:
+        return None
+    zyx = physical_to_voxel(image, np.asarray(points, dtype=float).reshape(-1, 3))
+    near = np.abs(zyx[:, axis] - index) <= 1.0
+    return zyx[near][:, [a for a in range(3) if a != axis]]
+
+
+def _draw(axes_row, image2d, label2d, aspect: float, title: str, points2d=None) -> None:
     from matplotlib.colors import ListedColormap
 
     lo, hi = np.percentile(image2d, [1, 99.5])
@@ -92,6 +101,12 @@ def _draw(axes_row, image2d, label2d, aspect: float, title: str) -> None:
                 linewidths=0.8,
             )
         axes_row[2].set_title("overlay", fontsize=8)
+    if points2d is not None and len(points2d):
+        axes_row[-1].plot(
+            points2d[:, 1], points2d[:, 0], "o", ms=3, mfc="none", mec="tab:red", mew=0.8
+        )
+        axes_row[-1].set_xlim(-0.5, image2d.shape[1] - 0.5)
+        axes_row[-1].set_ylim(-0.5, image2d.shape[0] - 0.5)
     for ax in axes_row:
         ax.set_xticks([])
         ax.set_yticks([])
@@ -115,6 +130,7 @@ def save_slice_png(
     *,
     axis: int = 0,
     index: int | None = None,
+    landmarks=None,
     dpi: int = 110,
 ) -> Path:
     """Write one slice of an image next to its label and overlaid with it, as a PNG.
@@ -133,6 +149,8 @@ def save_slice_png(
     index : int, optional
         Slice index along ``axis``. Default: the slice with the largest labelled area, or
         the middle slice without a label.
+    landmarks : (N, 3) float array, mm (x, y, z), optional
+        Points drawn as red circles on the last panel when within one voxel of the slice.
     dpi : int, default 110
 
     Returns
@@ -151,7 +169,8 @@ def save_slice_png(
     n_panels = 1 if label2d is None else 3
     fig = Figure(figsize=(2.4 * n_panels, 2.6))
     axes = fig.subplots(1, n_panels, squeeze=False)[0]
-    _draw(axes, image2d, label2d, aspect, f"image, {_AXIS_NAMES[axis]} index {index}")
+    points2d = _points_near_slice(image, landmarks, axis, index)
+    _draw(axes, image2d, label2d, aspect, f"image, {_AXIS_NAMES[axis]} index {index}", points2d)
     return _save_figure(fig, path, dpi)
 
 
@@ -159,6 +178,9 @@ def save_cohort_png(
     cohort, path: str | os.PathLike, *, n_cases: int = 3, axis: int = 0, dpi: int = 90
 ) -> Path:
     """Write a grid of the first ``n_cases`` cases: image, label and overlay per row.
+
+    Landmarks of a case (``case.landmarks``) within one voxel of the slice are drawn as red
+    circles on the overlay.
 
     Parameters
     ----------
@@ -189,7 +211,9 @@ def save_cohort_png(
         image = case.load_image()
         label = case.load_label()
         image2d, label2d, index, aspect = _slice_arrays(image, label, axis, None)
-        _draw(row, image2d, label2d, aspect, f"{case.case_id}, {_AXIS_NAMES[axis]} = {index}")
+        points2d = _points_near_slice(image, case.load_landmarks(), axis, index)
+        title = f"{case.case_id}, {_AXIS_NAMES[axis]} = {index}"
+        _draw(row, image2d, label2d, aspect, title, points2d)
     return _save_figure(fig, path, dpi)
 
 

@@ -233,6 +233,11 @@ def test_save_slice_png(cohort, tmp_path):
     assert pixels.ndim == 3 and pixels.shape[1] > 2 * pixels.shape[0]  # three panels
     assert pixels[..., :3].std() > 0.05
     assert sorted(p.name for p in tmp_path.iterdir()) == ["slice.png"]  # nothing left behind
+    # Landmarks near the slice are drawn on top: the picture changes.
+    marked = save_slice_png(
+        case.image, case.label, tmp_path / "marked.png", axis=1, landmarks=case.landmarks
+    )
+    assert not np.array_equal(matplotlib.image.imread(marked), pixels)
     flat = sitk.Image([8, 8], sitk.sitkFloat32)
     with pytest.raises(ImageGeometryError, match="3D"):
         save_slice_png(flat, None, tmp_path / "flat.png")
