@@ -111,8 +111,14 @@ def run(args: argparse.Namespace) -> None:
         per_set.append([(name, *pairs[i]) for i in pick])
     # interleave the sets so a time-boxed run covers both
     jobs = [job for group in zip_longest(*per_set) for job in group if job is not None]
+    if args.reverse:  # a second process can work from the other end into the same file
+        jobs = jobs[::-1]
     deadline = time.time() + 60 * args.minutes if args.minutes else np.inf
     for set_name, a, b in jobs:
+        if args.resume and log.exists():
+            done |= {
+                (r["set"], r["a"], r["b"]) for r in map(json.loads, log.read_text().splitlines())
+            }
         if (set_name, a, b) in done:
             continue
         if time.time() > deadline:
@@ -161,7 +167,9 @@ def run(args: argparse.Namespace) -> None:
 
 
 def summarise(args: argparse.Namespace) -> None:
-    records = [json.loads(ln) for ln in (Path(args.out) / "pairs.jsonl").read_text().splitlines()]
+    lines = (Path(args.out) / "pairs.jsonl").read_text().splitlines()
+    unique = {(r["set"], r["a"], r["b"]): r for r in map(json.loads, lines)}
+    records = list(unique.values())
     header = "set  method  pairs  direct  sym  " + "  ".join(f"<={t}" for t in THRESHOLDS[1:])
     print(header + "  log-area  s/pair")
     for set_name in SETS:
@@ -191,6 +199,7 @@ def main(argv=None) -> int:
     parser.add_argument("--out", default="/tmp/bench_matching", help="results folder")
     parser.add_argument("--resume", action="store_true", help="skip pairs already scored")
     parser.add_argument("--summarise", action="store_true", help="only print the summary")
+    parser.add_argument("--reverse", action="store_true", help="work through the pairs backwards")
     args = parser.parse_args(argv)
     if args.summarise:
         summarise(args)

@@ -450,6 +450,21 @@ def match_surfaces(
     -------
     SurfaceMatch
 
+    Notes
+    -----
+    Where this differs from the paper, and why:
+
+    * Dense stage cliques are the faces of A. For a face and a label triplet the third-order
+      cost is the squared edge-length distortion (in mean edge lengths) plus
+      ``lambda_gauss`` if the image triangle is mirrored against B's normals: a Möbius
+      residual per face and label combination would cost ``F (K+1)^3`` alignments.
+    * The one-to-one constraint is kept in the dense stage, but a vertex may stay unmatched
+      (two independent remeshings have no vertex bijection); unmatched vertices then take
+      their best dense candidate, so ``forward`` is complete but not injective.
+    * Each Möbius vote is weighted, per vertex, by how well the same map carries the nearby
+      matched sparse points (a conformal map fixed by one triplet is accurate only near it).
+    * ``refine=True`` adds a ZoomOut pass; ``forward_unrefined`` keeps the map without it.
+
     References
     ----------
     .. [1] Zeng, Y., Wang, C., Wang, Y., Gu, X., Samaras, D. & Paragios, N. "Dense non-rigid

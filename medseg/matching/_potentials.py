@@ -121,6 +121,12 @@ def mobius_potentials(
     t_count, c_count = labels.shape[:2]
     m_a, bad_a = _canonical_unchecked(z_a[triplets])  # (T, 2, 2)
     m_b, bad_b = _canonical_unchecked(z_b[labels])  # (T, C, 2, 2)
+    repeated = (
+        (labels[..., 0] == labels[..., 1])
+        | (labels[..., 1] == labels[..., 2])
+        | (labels[..., 0] == labels[..., 2])
+    )
+    skip = (repeated | bad_b | bad_a[:, None]).ravel()  # these cost the cap
     flat_mb = m_b.reshape(-1, 2, 2)
     out = np.full(t_count * c_count, cap)
     zsa, zsb = z_a[sa], z_b[sb]
@@ -133,6 +139,8 @@ def mobius_potentials(
         pb_chunk = to_riemann_sphere(zsb[None, :], flat_mb[start:stop])  # (B, n_B, 3)
         for r, pb in enumerate(pb_chunk):
             idx = start + r
+            if skip[idx]:
+                continue
             dist, nn_ab = cKDTree(pb).query(pa_all[idx // c_count])
             _, nn_ba = trees_a[idx // c_count].query(pb)
             ok = (nn_ba[nn_ab] == ar) & (dist < delta)
@@ -140,12 +148,6 @@ def mobius_potentials(
             if count:
                 out[idx] = min(n * dist[ok].sum() / (delta * count**2), cap)
     out = out.reshape(t_count, c_count)
-    repeated = (
-        (labels[..., 0] == labels[..., 1])
-        | (labels[..., 1] == labels[..., 2])
-        | (labels[..., 0] == labels[..., 2])
-    )
-    out[repeated | bad_b | bad_a[:, None]] = cap
     return out
 
 
