@@ -567,37 +567,46 @@ def plot_correspondences(
         others = [i for i in range(n_total) if i != result.reference_index]
         cases = [result.reference_index] + others[: max(0, int(n_cases) - 1)]
     cases = [int(c) for c in cases]
-    colours = plt.get_cmap("hsv")(np.linspace(0, 1, result.n_landmarks, endpoint=False))
-    fig = plt.figure(figsize=(3.2 * len(cases), 3.6))
+    colours = plt.get_cmap("turbo")(np.linspace(0.05, 0.95, result.n_landmarks))
+    # a common view: the reference's principal axes (longest along x, shortest towards the eye)
+    ref_v = result.reference_surface[0]
+    centre = ref_v.mean(0)
+    _, axes = np.linalg.eigh(np.cov((ref_v - centre).T))
+    axes = axes[:, ::-1] * np.array([1.0, 1.0, np.linalg.det(axes[:, ::-1])])
+    fig = plt.figure(figsize=(3.4 * len(cases), 3.9))
     for panel, c in enumerate(cases):
         mat = result.transforms[c]
-        lin = mat[:3, :3]
-        inv = np.linalg.inv(lin)
+        inv = np.linalg.inv(mat[:3, :3])
 
-        def back(p, mat=mat, inv=inv):
-            return (np.asarray(p) - mat[:3, 3]) @ inv.T
+        def view(p, mat=mat, inv=inv):
+            return ((np.asarray(p) - mat[:3, 3]) @ inv.T - centre) @ axes
 
         verts, faces = result.surfaces[c]
-        v = back(verts)
-        lm = back(result.landmarks[c])
-        ax = fig.add_subplot(1, len(cases), panel + 1, projection="3d")
-        ax.plot_trisurf(v[:, 0], v[:, 1], v[:, 2], triangles=faces, color="0.8", alpha=0.25,
-                        linewidth=0, shade=False)  # fmt: skip
-        ax.scatter(lm[:, 0], lm[:, 1], lm[:, 2], c=colours, s=22, depthshade=False,
-                   edgecolors="k", linewidths=0.3)  # fmt: skip
+        v = view(verts)
+        lm = view(result.landmarks[c])
+        ax = fig.add_subplot(1, len(cases), panel + 1, projection="3d", computed_zorder=False)
+        ax.plot_trisurf(v[:, 0], v[:, 1], v[:, 2], triangles=faces, color="0.75", alpha=0.35,
+                        linewidth=0, shade=True, zorder=1)  # fmt: skip
+        ax.scatter(lm[:, 0], lm[:, 1], lm[:, 2], c=colours, s=30, depthshade=False,
+                   edgecolors="k", linewidths=0.4, zorder=2, alpha=1.0)  # fmt: skip
         tag = " (reference)" if c == result.reference_index else ""
         ax.set_title(
             f"{result.case_ids[c]}{tag}\nresidual {result.residuals_mm[c]:.2f} mm", fontsize=8
         )
-        lo, hi = v.min(0), v.max(0)
-        mid, half = (lo + hi) / 2, (hi - lo).max() / 2
-        ax.set_xlim(mid[0] - half, mid[0] + half)
-        ax.set_ylim(mid[1] - half, mid[1] + half)
-        ax.set_zlim(mid[2] - half, mid[2] + half)
+        half = np.abs(v).max() * 0.75
+        ax.set_xlim(-half, half)
+        ax.set_ylim(-half, half)
+        ax.set_zlim(-half, half)
+        ax.set_box_aspect((1, 1, 1))
+        ax.view_init(elev=55, azim=-90)
         ax.set_axis_off()
-    fig.suptitle(f"{result.n_landmarks} landmarks in correspondence (same colour = same site)",
-                 fontsize=9)  # fmt: skip
-    fig.tight_layout()
+    fig.suptitle(
+        f"{result.n_landmarks} landmarks in correspondence: same colour = same landmark "
+        "(cases shown in the reference frame)",
+        fontsize=9,
+        y=0.99,
+    )
+    fig.subplots_adjust(left=0, right=1, bottom=0, top=0.86, wspace=0)
     from pathlib import Path
 
     with atomic_write(Path(path)) as tmp:
