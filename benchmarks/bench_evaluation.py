@@ -34,6 +34,9 @@ def main() -> None:
     parser.add_argument("--perturbation", nargs="*", type=float, default=[])
     parser.add_argument("--max-subjects", type=int, default=None)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--n-estimators", type=int, default=None, help="Trees per landmark forest. Default: 60."
+    )
     parser.add_argument("--out", default=None, help="Default: a temporary folder.")
     args = parser.parse_args()
     folds = args.folds if args.folds == "loo" else int(args.folds)
@@ -53,6 +56,9 @@ def main() -> None:
             seed=args.seed,
             n_jobs=n_jobs,
             perturbation=args.perturbation,
+            segmenter_params=(
+                {"n_estimators": args.n_estimators} if args.n_estimators is not None else None
+            ),
         )
         times.append(time.perf_counter() - t0)
         print(

@@ -372,20 +372,44 @@ def run_fold(task: FoldTask, on_row: Callable[[dict], None] | None = None) -> li
 # ----------------------------------------------------------------------------- runner
 
 
+def _method_config(specs: Sequence[MethodSpec]) -> dict:
+    """Per method name: estimator, constructor and segment arguments (as text)."""
+    out = {}
+    for spec in specs:
+        estimator = getattr(spec.estimator, "__qualname__", repr(spec.estimator))
+        params = repr(sorted(spec.params.items()))
+        for name, kwargs in spec.variants.items():
+            out[name] = {
+                "estimator": estimator,
+                "params": params,
+                "segment": repr(sorted(kwargs.items())),
+            }
+    return out
+
+
 def _check_run_config(folder: Path, config: dict) -> None:
+    """Refuse to resume a folder written with other settings; methods may be added."""
     path = folder / "run.json"
+    previous = None
     if path.is_file():
         try:
             previous = json.loads(path.read_text())
         except (OSError, ValueError):
             previous = None
-        if previous is not None:
-            changed = [k for k in config if previous.get(k) != config[k]]
-            if changed:
-                raise MedsegError(
-                    f"{folder} holds results of a different run ({', '.join(changed)} "
-                    "changed); resume with the same settings or choose a new output folder"
-                )
+    if previous is not None:
+        changed = [k for k in config if k != "methods" and previous.get(k) != config[k]]
+        old_methods = previous.get("methods", {})
+        changed += [
+            f"method {name!r}"
+            for name, value in config["methods"].items()
+            if name in old_methods and old_methods[name] != value
+        ]
+        if changed:
+            raise MedsegError(
+                f"{folder} holds results of a different run ({', '.join(changed)} "
+                "changed); resume with the same settings or choose a new output folder"
+            )
+        config = config | {"methods": old_methods | config["methods"]}
     with atomic_write(path) as tmp:
         tmp.write_text(json.dumps(config, indent=2, sort_keys=True))
 
@@ -455,6 +479,7 @@ def run_folds(
             "labels": list(labels),
             "seed": int(seed),
             "n_landmarks": n_landmarks,
+            "methods": _method_config(specs),
         },
     )
     results = _ResultsFile(folder / "cases.csv")

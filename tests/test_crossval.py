@@ -202,6 +202,9 @@ def test_resume_recomputes_only_missing_rows(tmp_path):
     assert not log.exists()
     with pytest.raises(MedsegError, match="seed"):
         run_folds(cohort, _specs(str(log)), part, folds="loo", seed=4)
+    other_params = (MethodSpec(ThresholdMethod, {"jitter": 0.1}, {"thresh": {}}),)
+    with pytest.raises(MedsegError, match="method 'thresh'"):
+        run_folds(cohort, other_params, part, folds="loo", seed=3)
 
 
 def _register_by_value():
