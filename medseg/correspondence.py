@@ -260,56 +260,47 @@ def _transfer(
 
     Returns the projected landmarks (N, 3) mm, the residual in mm and the (4, 4) similarity.
     """
+    # many small dense problems: BLAS / OpenMP threads would only contend (n_jobs does it)
     with threadpool_limits(limits=1):
-        return _transfer_impl(ref_vertices, ref_sample, ref_landmarks, tgt_vertices, tgt_faces,
-                              n_points=n_points, allow_reflection=allow_reflection, beta=beta,
-                              lam=lam, outlier_weight=outlier_weight, seed=seed, affine=affine,
-                              rank=rank)  # fmt: skip
+        rng = check_random_state(seed)
+        n_tgt = min(n_points, len(tgt_vertices))
+        tgt_sample = tgt_vertices[
+            farthest_point_sampling(tgt_vertices, n_tgt, start=int(rng.randint(len(tgt_vertices))))
+        ]
+        tree = cKDTree(tgt_sample)
+        best = None
+        for init in principal_axes_candidates(
+            ref_sample, tgt_sample, allow_reflection=allow_reflection
+        ):
+            tf, err = icp_similarity(
+                ref_sample, tgt_sample, init, dst_tree=tree, allow_reflection=allow_reflection
+            )
+            if best is None or err < best[1]:
+                best = (tf, err)
+        sim: Similarity = best[0]
+        # then affine, then non-rigid, in a normalised frame: target centred, unit RMS radius
+        centre = tgt_sample.mean(0)
+        radius = float(np.sqrt(((tgt_sample - centre) ** 2).sum(1).mean()))
 
+        def norm(p):
+            return (p - centre) / radius
 
-def _transfer_impl(
-    ref_vertices, ref_sample, ref_landmarks, tgt_vertices, tgt_faces, *, n_points,
-    allow_reflection, beta, lam, outlier_weight, seed, affine, rank,
-):  # fmt: skip
-    rng = check_random_state(seed)
-    n_tgt = min(n_points, len(tgt_vertices))
-    tgt_sample = tgt_vertices[
-        farthest_point_sampling(tgt_vertices, n_tgt, start=int(rng.randint(len(tgt_vertices))))
-    ]
-    tree = cKDTree(tgt_sample)
-    best = None
-    for init in principal_axes_candidates(
-        ref_sample, tgt_sample, allow_reflection=allow_reflection
-    ):
-        tf, err = icp_similarity(
-            ref_sample, tgt_sample, init, dst_tree=tree, allow_reflection=allow_reflection
-        )
-        if best is None or err < best[1]:
-            best = (tf, err)
-    sim: Similarity = best[0]
-    # then affine, then non-rigid, in a normalised frame: target centred, unit RMS radius
-    centre = tgt_sample.mean(0)
-    radius = float(np.sqrt(((tgt_sample - centre) ** 2).sum(1).mean()))
+        tgt_n = norm(tgt_sample)
+        src_n = norm(sim(ref_sample))
+        if affine:
+            mat, vec, _ = icp_affine(src_n, tgt_n)
+        else:
+            mat, vec = np.eye(3), np.zeros(3)
 
-    def norm(p):
-        return (p - centre) / radius
+        def pre(p):
+            return norm(sim(p)) @ mat.T + vec
 
-    tgt_n = norm(tgt_sample)
-    src_n = norm(sim(ref_sample))
-    if affine:
-        mat, vec, _ = icp_affine(src_n, tgt_n)
-    else:
-        mat, vec = np.eye(3), np.zeros(3)
-
-    def pre(p):
-        return norm(sim(p)) @ mat.T + vec
-
-    cpd = cpd_nonrigid(pre(ref_sample), tgt_n, beta=beta, lam=lam, w=outlier_weight, rank=rank)
-    warped_vertices = cpd.warp(pre(ref_vertices)) * radius + centre
-    warped_landmarks = cpd.warp(pre(ref_landmarks)) * radius + centre
-    mesh = _polydata(tgt_vertices, tgt_faces)
-    landmarks, _ = _closest_on_surface(mesh, warped_landmarks)
-    _, dist = _closest_on_surface(mesh, warped_vertices)
+        cpd = cpd_nonrigid(pre(ref_sample), tgt_n, beta=beta, lam=lam, w=outlier_weight, rank=rank)
+        warped_vertices = cpd.warp(pre(ref_vertices)) * radius + centre
+        warped_landmarks = cpd.warp(pre(ref_landmarks)) * radius + centre
+        mesh = _polydata(tgt_vertices, tgt_faces)
+        landmarks, _ = _closest_on_surface(mesh, warped_landmarks)
+        _, dist = _closest_on_surface(mesh, warped_vertices)
     return landmarks, float(dist.mean()), sim.matrix()
 
 
