@@ -272,6 +272,19 @@ def test_multiclass_mode(blobs, small_settings):
     assert recall >= 0.85
 
 
+def test_scale_augmentation_and_mining_add_samples(blobs, small_settings):
+    images, lms = [b[0] for b in blobs[:2]], [b[1] for b in blobs[:2]]
+    kwargs = dict(features=small_settings, n_estimators=3, n_negative=60, max_positive=10**6)
+    plain = LandmarkDetector(n_mining_rounds=0, random_state=0, **kwargs).fit(images, lms)
+    aug = LandmarkDetector(
+        n_mining_rounds=1, augment_scales=(0.5,), forest="extra_trees", random_state=0, **kwargs
+    ).fit(images, lms)
+    # a copy at half the size: the 2 mm ball holds 8x the voxels (1 mm spacing -> 0.5 mm)
+    assert np.all(aug.n_samples_[:, 1] > 4 * plain.n_samples_[:, 1])
+    # one mining round adds n_negative // 2 hard negatives per image (and per scaled copy)
+    assert np.all(aug.n_samples_[:, 0] == 2 * plain.n_samples_[:, 0] + 4 * 30)
+
+
 def test_same_seed_same_candidates(blobs, small_settings):
     kwargs = dict(features=small_settings, n_estimators=4, n_negative=60, random_state=3)
     train = ([b[0] for b in blobs[:3]], [b[1] for b in blobs[:3]])

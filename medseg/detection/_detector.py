@@ -7,7 +7,7 @@ from collections.abc import Sequence
 
 import numpy as np
 import SimpleITK as sitk
-from sklearn.ensemble import RandomForestClassifier
+from sklearn.ensemble import ExtraTreesClassifier, RandomForestClassifier
 from sklearn.utils import check_random_state
 from tqdm.auto import tqdm
 
@@ -29,6 +29,16 @@ __all__ = ["LandmarkDetector"]
 
 _MODES = ("per_landmark", "multiclass")
 _DEFAULT_FEATURES = FeatureSettings()  # frozen, so sharing it as a default is safe
+
+
+def _scaled(image: sitk.Image, pts: np.ndarray, factor: float):
+    """The image and landmarks magnified by ``factor`` about the world origin (no resampling)."""
+    if factor == 1.0:
+        return image, pts
+    out = sitk.Image(image)
+    out.SetSpacing([v * factor for v in image.GetSpacing()])
+    out.SetOrigin([v * factor for v in image.GetOrigin()])
+    return out, pts * factor
 
 
 class LandmarkDetector:
@@ -54,6 +64,18 @@ class LandmarkDetector:
         other landmarks, and uniform; see :func:`sample_landmark_voxels`).
     max_positive : int
         At most this many positive samples per landmark and training image.
+    n_mining_rounds : int
+        Rounds of hard-negative mining (bootstrapping): after fitting, the best-scoring
+        voxels away from each landmark in a random pool of every training image are added as
+        negatives and the forests refitted. 0 disables it.
+    n_mining_pool : int
+        Random voxels per training image scored in each mining round.
+    augment_scales : tuple of float
+        Extra copies of every training image, scaled about the world origin by these factors
+        (only the spacing and origin change, so no resampling): the forests see the anatomy
+        at other sizes, as a new subject may be bigger or smaller.
+    forest : {"random_forest", "extra_trees"}
+        Random Forests (as in the paper) or extremely randomised trees.
     random_state : int, RandomState or None
         Seeds the sampling and the forests; the same seed gives the same detector.
     n_jobs : int
@@ -87,6 +109,10 @@ class LandmarkDetector:
         mode: str = "per_landmark",
         n_negative: int = 300,
         max_positive: int = 100,
+        n_mining_rounds: int = 1,
+        n_mining_pool: int = 20000,
+        augment_scales: tuple[float, ...] = (),
+        forest: str = "random_forest",
         random_state=None,
         n_jobs: int = 1,
         verbose: bool = False,
@@ -100,6 +126,10 @@ class LandmarkDetector:
         self.mode = mode
         self.n_negative = n_negative
         self.max_positive = max_positive
+        self.n_mining_rounds = n_mining_rounds
+        self.n_mining_pool = n_mining_pool
+        self.augment_scales = augment_scales
+        self.forest = forest
         self.random_state = random_state
         self.n_jobs = n_jobs
         self.verbose = verbose
@@ -109,7 +139,8 @@ class LandmarkDetector:
         """Constructor arguments, as in scikit-learn."""
         names = (
             "features positive_radius_mm n_estimators max_depth min_samples_leaf max_features "
-            "mode n_negative max_positive random_state n_jobs verbose"
+            "mode n_negative max_positive n_mining_rounds n_mining_pool augment_scales "
+            "forest random_state n_jobs verbose"
         ).split()
         return {n: getattr(self, n) for n in names}
 
@@ -129,6 +160,10 @@ class LandmarkDetector:
             raise MedsegError(
                 f"`features` must be a FeatureSettings, got {type(self.features).__name__}"
             )
+        if self.forest not in ("random_forest", "extra_trees"):
+            raise MedsegError(
+                f"`forest` must be 'random_forest' or 'extra_trees', got {self.forest!r}"
+            )
         if self.mode not in _MODES:
             raise MedsegError(f"`mode` must be one of {_MODES}, got {self.mode!r}")
         if not float(self.positive_radius_mm) > 0:
@@ -137,8 +172,9 @@ class LandmarkDetector:
             if int(getattr(self, name)) < 1:
                 raise MedsegError(f"`{name}` must be a positive integer, got {getattr(self, name)}")
 
-    def _forest(self, seed: int, *, n_classes: int) -> RandomForestClassifier:
-        return RandomForestClassifier(
+    def _forest(self, seed: int, *, n_classes: int):
+        cls = ExtraTreesClassifier if self.forest == "extra_trees" else RandomForestClassifier
+        return cls(
             n_estimators=int(self.n_estimators),
             max_depth=self.max_depth,
             min_samples_leaf=int(self.min_samples_leaf),
@@ -190,16 +226,22 @@ class LandmarkDetector:
         settings = self.features
         X_pos = [[] for _ in range(n_lm)]
         X_neg = [[] for _ in range(n_lm)]
+        pools = []  # (features, positions mm) of random voxels per image, for mining
+        n_pool = int(self.n_mining_pool) if int(self.n_mining_rounds) > 0 else 0
         progress = self.verbose and show_progress()
-        for k, (image, pts) in enumerate(
-            tqdm(list(zip(images, landmarks, strict=True)), desc="features", disable=not progress)
-        ):
+        for k, image in enumerate(images):
             if not isinstance(image, sitk.Image) or image.GetDimension() != 3:
                 dim = image.GetDimension() if isinstance(image, sitk.Image) else None
                 raise ImageGeometryError(
                     f"fit: images[{k}] is not a 3D SimpleITK image (dimension {dim}); "
                     "landmark detection trains on 3D images"
                 )
+        scales = (1.0,) + tuple(float(v) for v in self.augment_scales)
+        jobs = [
+            (image, pts, s) for image, pts in zip(images, landmarks, strict=True) for s in scales
+        ]
+        for image, pts, factor in tqdm(jobs, desc="features", disable=not progress):
+            image, pts = _scaled(image, pts, factor)
             feats = compute_features(image, settings)
             flat = feats.reshape(-1, feats.shape[-1])
             samples = sample_landmark_voxels(
@@ -213,6 +255,10 @@ class LandmarkDetector:
             for i in range(n_lm):
                 X_pos[i].append(flat[samples.positives[i]])
                 X_neg[i].append(flat[samples.negatives[i]])
+            if n_pool:
+                idx = rng.choice(flat.shape[0], min(n_pool, flat.shape[0]), replace=False)
+                zyx = np.stack(np.unravel_index(idx, feats.shape[:3]), axis=-1)
+                pools.append((flat[idx].copy(), voxel_to_physical(image, zyx), pts))
             del feats, flat
         X_pos = [np.concatenate(x) for x in X_pos]
         X_neg = [np.concatenate(x) for x in X_neg]
@@ -222,24 +268,18 @@ class LandmarkDetector:
                 f"fit: landmark(s) {missing} are missing or outside the image in every training "
                 "image; drop them or fix the landmark files"
             )
+        seeds = rng.randint(np.iinfo(np.int32).max, size=n_lm + 1)
+        forests = self._fit_forests(X_pos, X_neg, seeds, progress)
+        self.forests_ = forests
+        self.n_landmarks_ = int(n_lm)
+        for _ in range(int(self.n_mining_rounds)):
+            mined = self._mine(pools)
+            X_neg = [np.concatenate([x, m]) for x, m in zip(X_neg, mined, strict=True)]
+            forests = self._fit_forests(X_pos, X_neg, seeds, progress)
+            self.forests_ = forests
         self.n_samples_ = np.array(
             [[len(n), len(p)] for n, p in zip(X_neg, X_pos, strict=True)], dtype=int
         )
-        if self.mode == "per_landmark":
-            forests = []
-            for i in tqdm(range(n_lm), desc="forests", disable=not progress):
-                X = np.concatenate([X_neg[i], X_pos[i]])
-                y = np.r_[np.zeros(len(X_neg[i]), int), np.ones(len(X_pos[i]), int)]
-                forest = self._forest(rng.randint(np.iinfo(np.int32).max), n_classes=2)
-                forests.append(forest.fit(X, y))
-        else:
-            X = np.concatenate(X_neg + X_pos)
-            y = np.concatenate(
-                [np.zeros(sum(len(x) for x in X_neg), int)]
-                + [np.full(len(X_pos[i]), i + 1, int) for i in range(n_lm)]
-            )
-            forest = self._forest(rng.randint(np.iinfo(np.int32).max), n_classes=n_lm + 1)
-            forests = [forest.fit(X, y)]
         self.forests_ = forests
         self.n_landmarks_ = int(n_lm)
         self.n_features_ = int(settings.n_features)
@@ -247,6 +287,45 @@ class LandmarkDetector:
         self.n_dims_ = 3
         self.fit_time_ = time.perf_counter() - t0
         return self
+
+    def _fit_forests(self, X_pos, X_neg, seeds, progress) -> list:
+        n_lm = len(X_pos)
+        if self.mode == "per_landmark":
+            forests = []
+            for i in tqdm(range(n_lm), desc="forests", disable=not progress):
+                X = np.concatenate([X_neg[i], X_pos[i]])
+                y = np.r_[np.zeros(len(X_neg[i]), int), np.ones(len(X_pos[i]), int)]
+                forests.append(self._forest(int(seeds[i]), n_classes=2).fit(X, y))
+            return forests
+        X = np.concatenate(X_neg + X_pos)
+        y = np.concatenate(
+            [np.zeros(sum(len(x) for x in X_neg), int)]
+            + [np.full(len(X_pos[i]), i + 1, int) for i in range(n_lm)]
+        )
+        return [self._forest(int(seeds[-1]), n_classes=n_lm + 1).fit(X, y)]
+
+    def _mine(self, pools) -> list[np.ndarray]:
+        """Hard negatives: the best-scoring pool voxels away from each landmark (bootstrapping).
+
+        For every training image and landmark, the ``n_negative // 2`` pool voxels with the
+        highest probability among those farther than ``2 * positive_radius_mm`` from the
+        landmark become extra negatives.
+        """
+        n_lm = self.n_landmarks_
+        n_hard = max(1, int(self.n_negative) // 2)
+        exclusion = 2.0 * float(self.positive_radius_mm)
+        mined = [[] for _ in range(n_lm)]
+        for X_pool, pos_mm, pts in pools:
+            proba = self._predict_rows(X_pool)
+            for i in range(n_lm):
+                if not np.isfinite(pts[i]).all():
+                    continue
+                far = np.linalg.norm(pos_mm - pts[i], axis=1) > exclusion
+                cand = np.flatnonzero(far)
+                top = cand[np.argsort(-proba[cand, i], kind="stable")[:n_hard]]
+                mined[i].append(X_pool[top])
+        width = pools[0][0].shape[1] if pools else self.n_features_
+        return [np.concatenate(m) if m else np.empty((0, width), np.float32) for m in mined]
 
     # ------------------------------------------------------------------ predict
     def _check_fitted(self) -> None:

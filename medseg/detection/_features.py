@@ -21,7 +21,17 @@ from medseg.errors import ImageGeometryError, MedsegError
 
 __all__ = ["FeatureSettings", "compute_features", "feature_names", "image_array"]
 
-FEATURE_KINDS = ("intensity", "smoothed", "gradient", "hessian", "log", "std", "shell")
+FEATURE_KINDS = (
+    "intensity",
+    "smoothed",
+    "gradient",
+    "hessian",
+    "log",
+    "std",
+    "shell",
+    "profile",
+    "ring",
+)
 _NORMALISATIONS = ("percentile", "zscore", "none")
 _FOREGROUNDS = ("image", "otsu")
 FORMAT_VERSION = 1
@@ -60,6 +70,9 @@ class FeatureSettings:
 
     scales_mm: tuple[float, ...] = (1.0, 2.0, 4.0, 8.0)
     shell_radii_mm: tuple[float, ...] = (3.0, 6.0, 10.0)
+    profile_mm: tuple[float, ...] = (-10.0, -6.0, -3.0, 3.0, 6.0, 10.0)
+    ring_radii_mm: tuple[float, ...] = (5.0, 10.0)
+    normal_scale_mm: float = 2.0
     kinds: tuple[str, ...] = FEATURE_KINDS
     normalisation: str = "percentile"
     percentiles: tuple[float, float] = (1.0, 99.0)
@@ -70,7 +83,7 @@ class FeatureSettings:
 
     def __post_init__(self):
         # Frozen dataclass: coerce lists (e.g. from JSON) to tuples through object.__setattr__.
-        for name in ("scales_mm", "shell_radii_mm", "percentiles"):
+        for name in ("scales_mm", "shell_radii_mm", "profile_mm", "ring_radii_mm", "percentiles"):
             object.__setattr__(self, name, tuple(float(v) for v in getattr(self, name)))
         object.__setattr__(self, "kinds", tuple(str(k) for k in self.kinds))
         unknown = [k for k in self.kinds if k not in FEATURE_KINDS]
@@ -141,6 +154,12 @@ def feature_names(settings: FeatureSettings) -> list[str]:
         names += [f"{n}@{s:g}mm" for n in per_scale]
     if "shell" in settings.kinds:
         names += [f"shell@{r:g}mm" for r in settings.shell_radii_mm]
+    if "profile" in settings.kinds:
+        names += [f"profile@{h:g}mm" for h in settings.profile_mm]
+    if "ring" in settings.kinds:
+        names += [
+            f"ring_{stat}@{r:g}mm" for r in settings.ring_radii_mm for stat in ("mean", "std")
+        ]
     return names
 
 
@@ -347,6 +366,8 @@ def compute_features(image: sitk.Image, settings: FeatureSettings | None = None)
             padded = np.pad(arr, pad, mode="edge")
             out[..., col] = fftconvolve(padded, kernel, mode="valid")
             col += 1
+    if kinds & {"profile", "ring"}:
+        col = _oriented_features(arr, spacing, settings, out, col)
     return out
 
 
@@ -355,3 +376,58 @@ def _sym3_eigvals_chunked(hzz, hzy, hzx, hyy, hyx, hxx, out: np.ndarray, chunk: 
     for z0 in range(0, hzz.shape[0], chunk):
         sl = slice(z0, z0 + chunk)
         _sym3_eigvals(hzz[sl], hzy[sl], hzx[sl], hyy[sl], hyx[sl], hxx[sl], out[sl])
+
+
+_RING_SAMPLES = 8
+
+
+def _oriented_features(arr, spacing, settings: FeatureSettings, out: np.ndarray, col: int) -> int:
+    """Intensities sampled in the local frame of the gradient: rotation-invariant by design.
+
+    The unit gradient ``n`` at ``normal_scale_mm`` (pointing from dark to bright) fixes an
+    axis at every voxel. ``"profile"``: the smoothed intensity at ``x + h n`` for each ``h`` in
+    ``profile_mm``. ``"ring"``: mean and standard deviation of the intensity on the circle of
+    radius ``rho`` around ``x`` in the plane normal to ``n`` (like a spin image). Both depend
+    only on the image content around ``x``, not on the pose.
+    """
+    sigma = settings.normal_scale_mm / spacing
+    smooth = ndimage.gaussian_filter(arr, sigma, mode="nearest")
+    grads = np.stack(np.gradient(smooth, *spacing), axis=0)  # (3, Z, Y, X), per mm, zyx
+    norm = np.sqrt((grads**2).sum(0))
+    normal = grads / np.where(norm > 0, norm, 1.0)
+    normal[:, norm == 0] = np.array([1.0, 0.0, 0.0])[:, None]
+    del grads, norm
+    # Sample a lightly smoothed image (1 mm) so single noisy voxels do not dominate.
+    sampled = ndimage.gaussian_filter(arr, 1.0 / spacing, mode="nearest")
+    index = np.indices(arr.shape, dtype=np.float32)
+    inv_spacing = (1.0 / spacing).astype(np.float32)[:, None, None, None]
+
+    def at(offset_mm: np.ndarray) -> np.ndarray:
+        coords = index + offset_mm * inv_spacing
+        return ndimage.map_coordinates(sampled, coords, order=1, mode="nearest", output=np.float32)
+
+    if "profile" in settings.kinds:
+        for h in settings.profile_mm:
+            out[..., col] = at((h * normal).astype(np.float32))
+            col += 1
+    if "ring" in settings.kinds:
+        # Tangent basis: t1 = normalise(n x a), a the coordinate axis least aligned with n.
+        axis = np.zeros_like(normal)
+        least = np.argmin(np.abs(normal), axis=0)
+        np.put_along_axis(axis, least[None], 1.0, axis=0)
+        t1 = np.cross(normal, axis, axis=0)
+        t1 /= np.linalg.norm(t1, axis=0, keepdims=True)
+        t2 = np.cross(normal, t1, axis=0)
+        angles = np.linspace(0.0, 2.0 * np.pi, _RING_SAMPLES, endpoint=False)
+        for rho in settings.ring_radii_mm:
+            total = np.zeros(arr.shape, dtype=np.float32)
+            total_sq = np.zeros(arr.shape, dtype=np.float32)
+            for a in angles:
+                v = at((rho * (np.cos(a) * t1 + np.sin(a) * t2)).astype(np.float32))
+                total += v
+                total_sq += v * v
+            mean = total / _RING_SAMPLES
+            out[..., col] = mean
+            out[..., col + 1] = np.sqrt(np.clip(total_sq / _RING_SAMPLES - mean * mean, 0, None))
+            col += 2
+    return col
