@@ -113,6 +113,10 @@ def _local_polytope(mrf: MRF):
     return cost, upper, a, rhs
 
 
+def _is_integral(x: np.ndarray | None) -> bool:
+    return x is not None and bool(np.allclose(x, np.round(x), atol=1e-6))
+
+
 def solve_ilp(
     mrf: MRF,
     *,
@@ -124,7 +128,8 @@ def solve_ilp(
 
     Variables ``mu_i(l)`` and ``mu_f(x_f)`` with ``sum_l mu_i(l) = 1`` and, for every factor
     ``f``, position ``q`` and label ``l``, ``sum_{x_f : x_q = l} mu_f(x_f) = mu_{f_q}(l)``.
-    Forbidden entries have their variable fixed to 0.
+    Forbidden entries have their variable fixed to 0. The LP is solved first; when its
+    optimum is integral it is returned as the ILP optimum, otherwise the ILP is solved.
 
     Parameters
     ----------
@@ -134,8 +139,9 @@ def solve_ilp(
         local-polytope bound that dual decomposition can at best reach, and ``x`` the
         argmax of ``mu_i``.
     time_limit : float, optional
-        Seconds given to HiGHS; reaching it is status 3 (``lower_bound`` is then HiGHS's
-        dual bound and ``x`` its best incumbent, if any).
+        Seconds given to HiGHS (LP and ILP together; HiGHS may overrun it in presolve);
+        reaching it is status 3 (``lower_bound`` is then HiGHS's dual bound and ``x`` its
+        best incumbent, if any).
     max_bytes : int, optional
         Memory budget checked against :func:`estimate_ilp_bytes`.
 
@@ -150,13 +156,23 @@ def solve_ilp(
     options = {"disp": False}
     if time_limit is not None:
         options["time_limit"] = float(time_limit)
-    res = milp(
-        cost,
-        integrality=np.zeros_like(cost) if relaxation else np.ones_like(cost),
-        bounds=Bounds(0.0, upper),
-        constraints=LinearConstraint(a, rhs, rhs),
-        options=options,
-    )
+
+    def run(integral: bool):
+        return milp(
+            cost,
+            integrality=np.ones_like(cost) if integral else np.zeros_like(cost),
+            bounds=Bounds(0.0, upper),
+            constraints=LinearConstraint(a, rhs, rhs),
+            options=options,
+        )
+
+    # the LP first: when its optimum is integral it is the ILP optimum (HiGHS's MIP presolve
+    # alone can take minutes on models that the LP settles in seconds)
+    res = run(False)
+    if not relaxation and not (res.status == 0 and _is_integral(res.x)):
+        if time_limit is not None:
+            options["time_limit"] = max(1e-3, float(time_limit) - (time.perf_counter() - t0))
+        res = run(True)
     n, lab = mrf.unaries.shape
     if res.x is not None:
         mu = res.x[: n * lab].reshape(n, lab)
@@ -181,5 +197,5 @@ def solve_ilp(
         method="lp" if relaxation else "ilp",
         highs_status=int(res.status),
         highs_message=str(res.message),
-        integral=bool(res.x is not None and np.allclose(res.x, np.round(res.x), atol=1e-6)),
+        integral=bool(res.x is not None and _is_integral(res.x)),
     )
