@@ -1,29 +1,124 @@
-"""``medseg-evaluate``: cross-validation with baselines, metrics and a report."""
+"""``medseg-evaluate``: cross-validation by subject with baselines, metrics and a report."""
 
 from __future__ import annotations
 
 import argparse
 from collections.abc import Sequence
 
-from medseg._cli import run_cli
+from medseg._cli import EXIT_OK, parse_labels, run_cli, show_progress
 from medseg.errors import MedsegError
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from evaluation.evaluate import DEFAULT_PERTURBATION
+    from evaluation.methods import METHOD_NAMES
+
     parser = argparse.ArgumentParser(
         prog="medseg-evaluate",
         description=(
-            "Leave-one-out / k-fold evaluation by subject with baselines and a report. "
-            "NOT BUILT YET: tracked in issue 7."
+            "Leave-one-subject-out or k-fold cross-validation (grouped by subject) of the "
+            "shape-prior segmenter and its baselines (detection without prior, active shape "
+            "model), with a pose-perturbation study. Writes a report folder: cases.csv, "
+            "summary.md, summary.json, boxplots, perturbation curves, overlays. Rerunning "
+            "on the same folder resumes."
         ),
     )
-    parser.add_argument("dataset", help="MSD / nnU-Net folder, CSV manifest, or 'phantom'.")
+    parser.add_argument(
+        "dataset", help="MSD / nnU-Net folder, CSV manifest, or 'phantom' (the embedded cohort)."
+    )
     parser.add_argument("-o", "--output", required=True, help="Report folder.")
+    parser.add_argument(
+        "--folds", default="loo", help="'loo' or the number K of subject folds. Default: loo."
+    )
+    parser.add_argument(
+        "--label", default="1", help="Label(s) forming the structure, e.g. 1,2. Default: 1."
+    )
+    parser.add_argument(
+        "--methods",
+        default=",".join(METHOD_NAMES),
+        help=f"Comma-separated methods. Default: {','.join(METHOD_NAMES)}.",
+    )
+    parser.add_argument(
+        "--landmarks", type=int, default=None, help="Landmarks per shape. Default: automatic."
+    )
+    parser.add_argument(
+        "--perturbation",
+        default=",".join(f"{a:g}" for a in DEFAULT_PERTURBATION),
+        help=(
+            "Rotation angles (degrees) of the pose-perturbation study, comma-separated; "
+            "'none' skips it. Default: " + ",".join(f"{a:g}" for a in DEFAULT_PERTURBATION)
+        ),
+    )
+    parser.add_argument(
+        "--max-subjects",
+        type=int,
+        default=None,
+        help="Evaluate only the first N subjects. Default: all.",
+    )
+    parser.add_argument(
+        "--phantom-subjects",
+        type=int,
+        default=20,
+        help="Subjects of the phantom cohort when DATASET is 'phantom'. Default: 20.",
+    )
+    parser.add_argument("--seed", type=int, default=0, help="Random seed. Default: 0.")
+    parser.add_argument("--jobs", type=int, default=1, help="Folds in parallel. Default: 1.")
+    parser.add_argument(
+        "--scheduler",
+        default=None,
+        help="Address of a running Dask scheduler (tcp://host:port). Default: local.",
+    )
+    parser.add_argument("-q", "--quiet", action="store_true", help="No progress bars.")
     return parser
 
 
+def _folds(text: str):
+    if text == "loo":
+        return "loo"
+    try:
+        k = int(text)
+    except ValueError:
+        k = 0
+    if k < 2:
+        raise MedsegError(f"--folds {text!r}: give 'loo' or a whole number of folds >= 2")
+    return k
+
+
+def _angles(text: str) -> tuple[float, ...]:
+    if text.strip().lower() in ("", "none"):
+        return ()
+    try:
+        return tuple(float(a) for a in text.split(","))
+    except ValueError:
+        raise MedsegError(f"--perturbation {text!r}: give angles in degrees, e.g. 15,30,45")
+
+
 def _run(args: argparse.Namespace) -> int:
-    raise MedsegError("medseg-evaluate is not built yet (evaluation is issue 7).")
+    from evaluation.evaluate import run_evaluation
+    from medseg.datasets import make_phantom_cohort
+
+    dataset = args.dataset
+    if dataset == "phantom":
+        dataset = make_phantom_cohort(args.phantom_subjects, random_state=args.seed)
+    out = run_evaluation(
+        dataset,
+        args.output,
+        folds=_folds(args.folds),
+        methods=[m.strip() for m in args.methods.split(",") if m.strip()],
+        labels=parse_labels(args.label),
+        n_landmarks=args.landmarks,
+        seed=args.seed,
+        n_jobs=args.jobs,
+        scheduler=args.scheduler,
+        perturbation=_angles(args.perturbation),
+        max_subjects=args.max_subjects,
+        progress=show_progress(args.quiet),
+    )
+    summary = out / "summary.md"
+    if summary.is_file() and not args.quiet:
+        print(summary.read_text(encoding="utf-8"))
+    print(f"report written to {out}")
+    return EXIT_OK
 
 
 def main(argv: Sequence[str] | None = None) -> int:
