@@ -90,7 +90,9 @@ def _angles(text: str) -> tuple[float, ...]:
     try:
         return tuple(float(a) for a in text.split(","))
     except ValueError:
-        raise MedsegError(f"--perturbation {text!r}: give angles in degrees, e.g. 15,30,45")
+        raise MedsegError(
+            f"--perturbation {text!r}: give angles in degrees, e.g. 15,30,45"
+        ) from None
 
 
 def _run(args: argparse.Namespace) -> int:
