@@ -286,7 +286,7 @@ def cpd_nonrigid(
     n = x.shape[0]
     g = np.exp(-_sqdist(y, y) / (2.0 * beta**2))
     if rank is not None and rank < m:
-        evals, q = eigsh(g, k=rank, which="LA")
+        evals, q = eigsh(g, k=rank, which="LA", v0=np.ones(m))  # fixed start: reproducible
         lam_k = np.maximum(evals, 1e-12)
     else:
         q = None
