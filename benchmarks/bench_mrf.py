@@ -367,6 +367,9 @@ def main(argv=None):
         help="skip pgmax above this many table entries; default 3000000",
     )
     parser.add_argument("--seed", type=int, default=0, help="default 0")
+    parser.add_argument(
+        "--only", default="", help="run only the problems whose name contains this text"
+    )
     args = parser.parse_args(argv)
     args.methods = [m for m in args.methods.split(",") if m]
     args.max_iter = args.max_iter or (100 if args.quick else 500)
@@ -380,6 +383,8 @@ def main(argv=None):
     print(HEADER)
     rows = []
     for name, build in suites(args.quick):
+        if args.only not in name:
+            continue
         t0 = time.perf_counter()
         mrf = build(np.random.default_rng(args.seed))
         print(f"# {name}: {mrf!r}, generated in {time.perf_counter() - t0:.1f} s", flush=True)
