@@ -78,7 +78,8 @@ def save_detector(detector, path) -> Path:
     parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=parent))
     try:
-        sio.dump(list(detector.forests_), tmp / _FORESTS)
+        payload = {"forests": list(detector.forests_), "region": detector.region_forest_}
+        sio.dump(payload, tmp / _FORESTS)
         (tmp / _META).write_text(json.dumps(meta, indent=2, sort_keys=True))
         if path.exists():
             old = Path(tempfile.mkdtemp(prefix=f".{path.name}.old.", dir=parent))
@@ -138,11 +139,13 @@ def load_detector(path):
             "file that may have been tampered with"
         )
     try:
-        forests = sio.load(path / _FORESTS, trusted=untrusted)
+        payload = sio.load(path / _FORESTS, trusted=untrusted)
+        forests, region = payload["forests"], payload["region"]
     except Exception as exc:
         raise ModelFileError(f"load: {path / _FORESTS} is corrupt ({exc})") from exc
     detector = LandmarkDetector(**params)
     detector.forests_ = list(forests)
+    detector.region_forest_ = region
     detector.n_landmarks_ = int(fitted["n_landmarks"])
     detector.n_features_ = int(fitted["n_features"])
     detector.feature_names_ = list(fitted["feature_names"])
