@@ -19,43 +19,71 @@ from medseg.mrf._result import SolveResult, make_result
 __all__ = ["solve_srmp"]
 
 
-def _pass_plan(scopes, incidence, order):
+#: The in-factor tables of every variable are stored transposed and contiguous (about
+#: ``2 (k - 1)`` copies of the tables) when that fits in this many bytes; otherwise they are
+#: gathered on the fly at every visit.
+PREGATHER_BYTES = 512 * 2**20
+
+
+def _transposed(table: np.ndarray, q: int) -> np.ndarray:
+    """``table`` (n, L, ..., L) with table position ``q`` moved first (others in order)."""
+    k = table.ndim - 1
+    return np.transpose(table, (0, 1 + q) + tuple(1 + r for r in range(k) if r != q))
+
+
+def _stack(table: np.ndarray, parts) -> np.ndarray:
+    """C-contiguous stack of ``table[fin]`` with position ``q`` first, for (q, fin) parts."""
+    return np.ascontiguousarray(np.concatenate([_transposed(table[fin], q) for q, fin in parts]))
+
+
+def _pass_plan(scopes, incidence, order, tables, pregather):
     """For each variable (in ``order``): its factors split into incoming / outgoing sets.
 
     A factor is *incoming* at ``i`` when it has a variable earlier than ``i`` in the order,
     *outgoing* when it has one later; the weight of an outgoing factor is
-    ``1 / max(#incoming, #outgoing)`` (Kolmogorov 2015, SRMP).
+    ``1 / max(#incoming, #outgoing)`` (Kolmogorov 2015, SRMP). The incoming factors of one
+    order are updated as one batch with ``i`` moved to the first table axis.
     """
     rank = np.empty(len(order), dtype=np.int64)
     rank[order] = np.arange(len(order))
     plan = []
     for i in order:
-        groups, n_in, n_out = [], 0, 0
+        groups, incoming, n_in, n_out = [], {}, 0, 0
         for k, q, f in incidence[i]:
             others = np.delete(rank[scopes[k][f]], q, axis=1)
             fin = f[(others < rank[i]).any(axis=1)]
             fout = f[(others > rank[i]).any(axis=1)]
             n_in += len(fin)
             n_out += len(fout)
-            groups.append((k, q, f, fin, fout))
+            groups.append((k, q, f, fout))
+            if len(fin):
+                incoming.setdefault(k, []).append((q, fin))
+        batches = []
+        for k, parts in incoming.items():
+            ids = np.concatenate([fin for _, fin in parts])
+            pos = np.concatenate([np.full(len(fin), q) for q, fin in parts])
+            rest = np.array([[r for r in range(k) if r != q] for q in pos], dtype=np.int64)
+            stacked = None
+            if pregather:
+                stacked = _stack(tables[k], parts)
+            batches.append((k, ids, pos, rest, parts, stacked))
         weight = 1.0 / max(n_in, n_out, 1)
-        plan.append((i, groups, weight))
+        plan.append((i, groups, batches, weight))
     return plan
 
 
 def _run_pass(plan, theta, tables, msg):
     """One SRMP pass: receive from incoming factors, send shares of the belief to outgoing."""
-    for i, groups, weight in plan:
-        for k, q, _f, fin, _fout in groups:
-            if len(fin) == 0:
-                continue
-            m = msg[k][fin].astype(np.float32)
-            others = {r: -m[:, r] for r in range(k) if r != q}
-            msg[k][fin, q] = min_to_axis(tables[k][fin], others, q)
+    for i, groups, batches, weight in plan:
+        for k, ids, pos, rest, parts, stacked in batches:
+            if stacked is None:
+                stacked = _stack(tables[k], parts)
+            beliefs = {j + 1: -msg[k][ids, rest[:, j]].astype(np.float32) for j in range(k - 1)}
+            msg[k][ids, pos] = min_to_axis(stacked, beliefs, 0)
         bi = theta[i].copy()
-        for k, q, f, _fin, _fout in groups:
+        for k, q, f, _fout in groups:
             bi += msg[k][f, q].sum(axis=0)
-        for k, q, _f, _fin, fout in groups:
+        for k, q, _f, fout in groups:
             if len(fout):
                 msg[k][fout, q] -= weight * bi
 
@@ -87,8 +115,9 @@ def solve_srmp(
     msg = {k: np.zeros((len(g), k, lab)) for k, g in mrf.groups.items()}
     incidence = _incidence(scopes, n)
     order = np.arange(n)
-    forward = _pass_plan(scopes, incidence, order)
-    backward = _pass_plan(scopes, incidence, order[::-1])
+    pregather = sum(2 * (k - 1) * t.nbytes for k, t in tables.items()) <= PREGATHER_BYTES
+    forward = _pass_plan(scopes, incidence, order, tables, pregather)
+    backward = _pass_plan(scopes, incidence, order[::-1], tables, pregather)
 
     primal = PrimalTracker(mrf, local_search=local_search)
     best_lb = -np.inf
