@@ -548,6 +548,13 @@ def _run_dask(tasks: list[FoldTask], scheduler: str, results: _ResultsFile, bar)
             "`dask scheduler` and workers with `dask worker <address>`"
         ) from exc
     with client:
+        try:
+            client.wait_for_workers(1, timeout=DASK_CONNECT_TIMEOUT)
+        except TimeoutError as exc:
+            raise MedsegError(
+                f"the Dask scheduler at {scheduler!r} has no workers; start some with "
+                f"`dask worker {scheduler}`"
+            ) from exc
         futures = [client.submit(run_fold, t, pure=False) for t in tasks]
         for future in as_completed(futures):
             for row in future.result():
