@@ -88,6 +88,9 @@ def solve(
         variables, each receiving min-marginal messages from the factors that reach back
         and sending them an equal share of its belief. Also monotone, with better fixed
         points than MPLP; the fastest of the three here (see benchmarks/bench_mrf.py).
+        When its bound stalls (``patience``), a burst of 100 projected-subgradient steps on
+        the same dual moves it off the stall point before message passing resumes (at
+        most 3 bursts that bring no gain, then status 2).
     max_iter : int, default 500
         Subgradient steps, MPLP sweeps, or SRMP forward+backward pass pairs.
     tol : float, default 1e-3

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from medseg.mrf._kernels import forbidden_cost, min_to_axis
+from medseg.mrf._kernels import chunks, forbidden_cost, min_to_axis
 from medseg.mrf._model import MRF
 from medseg.mrf._mplp import _dual_certificate, _incidence, _sequential_decode
 from medseg.mrf._primal import (
@@ -88,6 +88,55 @@ def _run_pass(plan, theta, tables, msg):
                 msg[k][fout, q] -= weight * bi
 
 
+def _factor_dual(theta, scopes, tables, msg):
+    """Dual value, variable argmins (N,) and factor argmins {k: (C_k, k)} (float64)."""
+    lab = theta.shape[1]
+    belief = theta.copy()
+    for k, sc in scopes.items():
+        for q in range(k):
+            np.add.at(belief, sc[:, q], msg[k][:, q])
+    value = float(belief.min(axis=1).sum())
+    argmins = {}
+    for k, sc in scopes.items():
+        best = np.empty((len(sc), k), dtype=np.int64)
+        for ch in chunks(len(sc), 2 * lab**k * 8):
+            t = tables[k][ch].astype(np.float64)
+            for q in range(k):
+                shape = [t.shape[0]] + [1] * k
+                shape[q + 1] = lab
+                t -= msg[k][ch, q].reshape(shape)
+            flat = t.reshape(len(t), -1)
+            a = flat.argmin(axis=1)
+            value += float(flat[np.arange(len(a)), a].sum())
+            best[ch] = np.stack(np.unravel_index(a, (lab,) * k), axis=1)
+        argmins[k] = best
+    return value, belief.argmin(axis=1), argmins
+
+
+def _subgradient_burst(theta, scopes, tables, msg, target, n_steps, scale=0.5):
+    """Projected-subgradient steps on the same (factor-wise) dual, Polyak step to ``target``.
+
+    Block-coordinate ascent can stall at points where no single block can improve the dual
+    (weak tree agreement); subgradient steps move all messages at once and leave them.
+    """
+    for _ in range(n_steps):
+        value, xv, xf = _factor_dual(theta, scopes, tables, msg)
+        grads, norm2 = {}, 0.0
+        for k, sc in scopes.items():
+            g = np.zeros_like(msg[k])
+            rows = np.arange(len(sc))
+            for q in range(k):
+                g[rows, q, xv[sc[:, q]]] += 1.0
+                g[rows, q, xf[k][:, q]] -= 1.0
+            grads[k] = g
+            norm2 += float((g * g).sum())
+        if norm2 == 0.0 or not target > value:
+            return
+        step = scale * (target - value) / norm2
+        for k in msg:
+            msg[k] += step * grads[k]
+
+
 def solve_srmp(
     mrf: MRF,
     *,
@@ -100,6 +149,8 @@ def solve_srmp(
     local_search: bool,
     progress,
     decode_every: int = 5,
+    burst_steps: int = 100,
+    max_bursts: int = 3,
 ) -> SolveResult:
     """SRMP: forward and backward passes of reweighted factor-to-variable messages.
 
@@ -123,6 +174,7 @@ def solve_srmp(
     best_lb = -np.inf
     hist_e, hist_lb = [], []
     status, it = 1, 0
+    last_burst, n_sub, bursts_left, lb_at_last_stall = 0, 0, max_bursts, None
     while it < max_iter:
         it += 1
         _run_pass(forward, theta, tables, msg)
@@ -142,11 +194,20 @@ def solve_srmp(
         if gap_closed(primal.energy, best_lb, tol, atol):
             status = 0
             break
-        if it > patience and hist_lb[-1] - hist_lb[-1 - patience] <= stall_tol * max(
+        if it - last_burst > patience and hist_lb[-1] - hist_lb[-1 - patience] <= stall_tol * max(
             abs(primal.energy), atol
         ):
-            status = 2
-            break
+            if bursts_left == 0 or not np.isfinite(primal.energy):
+                status = 2
+                break
+            # stalled: a burst of subgradient steps, then message passing resumes
+            _subgradient_burst(theta, scopes, tables, msg, primal.energy, burst_steps)
+            n_sub += burst_steps
+            last_burst = it
+            gain = np.inf if lb_at_last_stall is None else best_lb - lb_at_last_stall
+            if gain <= stall_tol * abs(primal.energy):  # the previous burst did not help
+                bursts_left -= 1
+            lb_at_last_stall = best_lb
         if clock.out_of_time():
             status = 3
             break
@@ -164,4 +225,5 @@ def solve_srmp(
         min_marginals=finish_min_marginals(mm, mrf, big),
         history={"energy": np.asarray(hist_e), "lower_bound": np.asarray(hist_lb)},
         method="srmp",
+        n_subgradient_steps=n_sub,
     )
