@@ -176,14 +176,14 @@ def bench_scaling(args) -> dict:
         case = make_phantom_cohort(1, n_landmarks=args.n_landmarks, size=size, random_state=99)[0]
         image = case.load_image()
         tracemalloc.start()
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         feats = compute_features(image, det.features)
-        t_feat = time.perf_counter() - t0
+        t_feat, c_feat = time.perf_counter() - t0, time.process_time() - c0
         _, peak_feat = tracemalloc.get_traced_memory()
         tracemalloc.reset_peak()
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         cs = det.candidates(image, n_candidates=20, stride=args.stride, precomputed=feats)
-        t_cand = time.perf_counter() - t0
+        t_cand, c_cand = time.perf_counter() - t0, time.process_time() - c0
         _, peak_cand = tracemalloc.get_traced_memory()
         tracemalloc.stop()
         del feats
@@ -193,6 +193,9 @@ def bench_scaling(args) -> dict:
             "candidates_seconds": t_cand,
             "candidates_breakdown": cs.meta["timings"],
             "total_seconds": t_feat + t_cand,
+            "features_cpu_seconds": c_feat,
+            "candidates_cpu_seconds": c_cand,
+            "load_average": os.getloadavg()[0],
             "peak_traced_MiB_features": peak_feat / 2**20,
             "peak_traced_MiB_candidates": peak_cand / 2**20,
             "process_peak_rss_MiB": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,

@@ -344,10 +344,10 @@ class LandmarkDetector:
             keep[np.argsort(-p, kind="stable")[:floor]] = True
         return keep
 
-    def _predict_cascade(self, X: np.ndarray) -> np.ndarray:
-        """Landmark probabilities of the rows of ``X``; 0 where the cascade rejects the row."""
+    def _predict_cascade(self, X: np.ndarray, *, rejected: float = 0.0) -> np.ndarray:
+        """Landmark probabilities of the rows of ``X``; ``rejected`` where the cascade says no."""
         keep = self._region_keep(X)
-        out = np.zeros((X.shape[0], self.n_landmarks_), dtype=np.float32)
+        out = np.full((X.shape[0], self.n_landmarks_), rejected, dtype=np.float32)
         out[keep] = self._predict_rows(X[keep])
         return out
 
@@ -460,6 +460,10 @@ class LandmarkDetector:
         out = np.zeros((X.shape[0], len(landmarks)), dtype=np.float32)
         if X.shape[0] == 0:
             return out
+        # Threads cost more than they save on small batches (refinement neighbourhoods).
+        n_jobs = self.n_jobs if X.shape[0] >= 20000 else 1
+        for forest in self.forests_:
+            forest.n_jobs = n_jobs
         if self.mode == "per_landmark":
             for col, i in enumerate(landmarks):
                 forest = self.forests_[i]
@@ -599,7 +603,7 @@ class LandmarkDetector:
             scored = np.ones(len(grid_rows), dtype=bool)
             footprint = None
         proba = np.full((len(grid_rows), self.n_landmarks_), -np.inf, dtype=np.float64)
-        proba[scored] = self._predict_cascade(flat[grid_rows[scored]])
+        proba[scored] = self._predict_cascade(flat[grid_rows[scored]], rejected=-np.inf)
         timings["predict_s"] = time.perf_counter() - t0
         points_mm = voxel_to_physical(image, grid_zyx)
 
@@ -673,6 +677,9 @@ class LandmarkDetector:
                 if np.all(np.isnan(v)):
                     continue
                 best = int(np.nanargmax(v))
+                centre = v.size // 2
+                if np.isfinite(v[centre]) and v[best] <= v[centre]:
+                    best = centre  # ties (flat maps) keep the candidate where it is
                 cube = v.reshape(side, side, side)
                 local = np.unravel_index(best, cube.shape)
                 offset = subvoxel_peak(cube, local)
