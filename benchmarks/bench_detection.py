@@ -118,7 +118,8 @@ def bench_hippocampus(args) -> dict:
     train, test = next(split.split(np.zeros(len(groups)), groups=groups))
     train = train[: args.n_train]
     test = test[: args.n_test]
-    assert not set(groups[train]) & set(groups[test])
+    if set(groups[train]) & set(groups[test]):
+        raise RuntimeError("subject-grouped split leaked a subject into both sides")
     images = {i: cohort[int(i)].load_image() for i in np.r_[train, test]}
     labels = {i: cohort[int(i)].load_label() for i in np.r_[train, test]}
     t0 = time.perf_counter()
