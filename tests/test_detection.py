@@ -86,7 +86,12 @@ def small_settings():
 @pytest.fixture(scope="module")
 def fitted(blobs, small_settings):
     det = LandmarkDetector(
-        features=small_settings, n_estimators=12, n_negative=150, random_state=0, n_jobs=2
+        features=small_settings,
+        n_estimators=12,
+        n_negative=150,
+        n_mining_pool=4000,
+        random_state=0,
+        n_jobs=2,
     )
     return det.fit([b[0] for b in blobs[:6]], [b[1] for b in blobs[:6]])
 
@@ -264,6 +269,7 @@ def test_multiclass_mode(blobs, small_settings):
         mode="multiclass",
         n_estimators=12,
         n_negative=150,
+        n_mining_pool=4000,
         random_state=0,
         n_jobs=2,
     ).fit([b[0] for b in blobs[:6]], [b[1] for b in blobs[:6]])
@@ -274,7 +280,13 @@ def test_multiclass_mode(blobs, small_settings):
 
 def test_scale_augmentation_and_mining_add_samples(blobs, small_settings):
     images, lms = [b[0] for b in blobs[:2]], [b[1] for b in blobs[:2]]
-    kwargs = dict(features=small_settings, n_estimators=3, n_negative=60, max_positive=10**6)
+    kwargs = dict(
+        features=small_settings,
+        n_estimators=3,
+        n_negative=60,
+        max_positive=10**6,
+        n_mining_pool=2000,
+    )
     plain = LandmarkDetector(n_mining_rounds=0, random_state=0, **kwargs).fit(images, lms)
     aug = LandmarkDetector(
         n_mining_rounds=1, augment_scales=(0.5,), forest="extra_trees", random_state=0, **kwargs
@@ -286,7 +298,9 @@ def test_scale_augmentation_and_mining_add_samples(blobs, small_settings):
 
 
 def test_same_seed_same_candidates(blobs, small_settings):
-    kwargs = dict(features=small_settings, n_estimators=4, n_negative=60, random_state=3)
+    kwargs = dict(
+        features=small_settings, n_estimators=4, n_negative=60, n_mining_pool=2000, random_state=3
+    )
     train = ([b[0] for b in blobs[:3]], [b[1] for b in blobs[:3]])
     a = LandmarkDetector(**kwargs).fit(*train).candidates(blobs[8][0], n_candidates=5)
     b = LandmarkDetector(**kwargs).fit(*train).candidates(blobs[8][0], n_candidates=5)
