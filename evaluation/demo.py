@@ -73,8 +73,10 @@ def _run(args: argparse.Namespace) -> int:
     for case in tqdm(test, desc="segmenting", disable=not progress):
         image = case.load_image()
         truth = select_labels(case.load_label(), 1)
+        cands = None
         for method, use_prior in (("shape prior", True), ("detection only", False)):
-            seg = model.segment(image, use_prior=use_prior)
+            seg = model.segment(image, use_prior=use_prior, candidates=cands)
+            cands = seg.candidates
             scores = score_segmentation(seg.label, truth)
             err_mm, err_vox = landmark_errors(seg.landmarks, case.load_landmarks(), image)
             gap = f"{seg.mrf.gap:.1e}" if seg.mrf is not None else "-"

@@ -37,9 +37,12 @@ _PARAMS = (
     "cliques",
     "density",
     "alpha",
+    "landmark_noise_mm",
+    "n_noise_copies",
     "n_estimators",
     "smoothing",
     "max_iter",
+    "mrf_method",
     "n_jobs",
 )
 MAX_MODEL_BYTES = 2 * 1024**3

@@ -110,12 +110,23 @@ class ShapePriorSegmenter:
         Density of the relative-distance invariant per clique.
     alpha : float, default 1.0
         Weight of the prior against the detectors' evidence.
+    landmark_noise_mm : float, default 1.5
+        Standard deviation of the localisation noise of detected landmarks. The clique
+        densities are fitted to training shapes jittered by this much (``n_noise_copies``
+        copies each), so that they model where *detected* landmarks fall, not only the exact
+        training positions; 0 fits the exact shapes (then any real configuration gets
+        potentials in the thousands and the detectors' evidence is drowned).
+    n_noise_copies : int, default 10
+        Jittered copies of each training shape for the clique densities.
     n_estimators : int, default 60
         Trees per landmark forest.
     smoothing : float, default 0.0
         Thin-plate spline smoothing of the reconstruction.
     max_iter : int, default 300
         Iterations of the MRF solver.
+    mrf_method : {"mplp", "srmp", "subgradient"}, default "mplp"
+        MRF solver (see :func:`medseg.mrf.solve`); "subgradient" is the paper's dual
+        decomposition into factor trees.
     random_state : int, Generator, RandomState or None
         Seeds every stochastic step; the same seed gives the same model.
     n_jobs : int, default 1
@@ -144,9 +155,12 @@ class ShapePriorSegmenter:
         cliques: str = "knn",
         density: str = "gmm",
         alpha: float = 1.0,
+        landmark_noise_mm: float = 1.5,
+        n_noise_copies: int = 10,
         n_estimators: int = 60,
         smoothing: float = 0.0,
         max_iter: int = 300,
+        mrf_method: str = "mplp",
         random_state=None,
         n_jobs: int = 1,
     ):
@@ -156,9 +170,12 @@ class ShapePriorSegmenter:
         self.cliques = cliques
         self.density = density
         self.alpha = alpha
+        self.landmark_noise_mm = landmark_noise_mm
+        self.n_noise_copies = n_noise_copies
         self.n_estimators = n_estimators
         self.smoothing = smoothing
         self.max_iter = max_iter
+        self.mrf_method = mrf_method
         self.random_state = random_state
         self.n_jobs = n_jobs
 
@@ -239,14 +256,16 @@ class ShapePriorSegmenter:
         t0 = time.perf_counter()
         self.prior_ = TripletPrior(
             cliques=self.cliques, density=self.density, alpha=self.alpha, random_state=rng
-        ).fit(self.landmarks_)
+        ).fit(_jittered(self.landmarks_, self.landmark_noise_mm, self.n_noise_copies, rng))
         timings["prior"] = time.perf_counter() - t0
         self.fit_timings_ = timings
         return self
 
     # -- inference --------------------------------------------------------------------------
 
-    def segment(self, image, *, use_prior: bool = True) -> Segmentation:
+    def segment(
+        self, image, *, use_prior: bool = True, candidates: CandidateSet | None = None
+    ) -> Segmentation:
         """Segment one image, with no pose initialisation.
 
         Parameters
@@ -255,6 +274,9 @@ class ShapePriorSegmenter:
         use_prior : bool, default True
             False places each landmark at its best candidate (the detection-only
             baseline); True minimises the higher-order MRF.
+        candidates : CandidateSet, optional
+            Candidates already detected in this image (``Segmentation.candidates`` of an
+            earlier call), so that variants of the inference do not detect twice.
         """
         self._check_is_fitted()
         source = image
@@ -262,7 +284,9 @@ class ShapePriorSegmenter:
         timings: dict[str, float] = {}
 
         t0 = time.perf_counter()
-        cands = self.detector_.candidates(image, n_candidates=self.n_candidates)
+        cands = candidates
+        if cands is None:
+            cands = self.detector_.candidates(image, n_candidates=self.n_candidates)
         timings["detection"] = time.perf_counter() - t0
 
         n = cands.positions.shape[0]
@@ -274,7 +298,7 @@ class ShapePriorSegmenter:
             timings["potentials"] = time.perf_counter() - t0
             t0 = time.perf_counter()
             problem = MRF.from_triplets(unaries, self.prior_.cliques_, tables)
-            result = solve(problem, max_iter=self.max_iter)
+            result = solve(problem, method=self.mrf_method, max_iter=self.max_iter)
             timings["mrf"] = time.perf_counter() - t0
             choice = np.asarray(result.x)
             confidence = _margin(result.min_marginals)
@@ -346,6 +370,14 @@ def _given_landmarks(cohort: Cohort, given: list) -> tuple[np.ndarray, np.ndarra
         for j in range(i + 1, n):
             disparity[i, j] = disparity[j, i] = procrustes(landmarks[i], landmarks[j])[2]
     return np.ones(n, dtype=bool), landmarks, int(np.argmin(disparity.sum(axis=1)))
+
+
+def _jittered(shapes: np.ndarray, sigma: float, copies: int, rng) -> np.ndarray:
+    """``copies`` noisy versions of every shape (isotropic Gaussian, ``sigma`` mm)."""
+    if sigma <= 0 or copies < 1:
+        return shapes
+    noise = rng.normal(scale=sigma, size=(copies,) + shapes.shape)
+    return (shapes[None] + noise).reshape((-1,) + shapes.shape[1:])
 
 
 def _margin(costs: np.ndarray) -> np.ndarray:
