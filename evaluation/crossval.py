@@ -393,7 +393,7 @@ def _check_run_config(folder: Path, config: dict) -> None:
     previous = None
     if path.is_file():
         try:
-            previous = json.loads(path.read_text())
+            previous = json.loads(path.read_text(encoding="utf-8"))
         except (OSError, ValueError):
             previous = None
     if previous is not None:
@@ -411,7 +411,7 @@ def _check_run_config(folder: Path, config: dict) -> None:
             )
         config = config | {"methods": old_methods | config["methods"]}
     with atomic_write(path) as tmp:
-        tmp.write_text(json.dumps(config, indent=2, sort_keys=True))
+        tmp.write_text(json.dumps(config, indent=2, sort_keys=True), encoding="utf-8")
 
 
 def run_folds(

@@ -386,9 +386,9 @@ def write_report(
     title = title or f"medseg evaluation ({folder.name})"
     out = folder / "summary.md"
     with atomic_write(out) as tmp:
-        tmp.write_text(_markdown(summary, title))
+        tmp.write_text(_markdown(summary, title), encoding="utf-8")
     with atomic_write(folder / "summary.json") as tmp:
-        tmp.write_text(_summary_json(rows, summary))
+        tmp.write_text(_summary_json(rows, summary), encoding="utf-8")
     _boxplots(rows, methods, folder / "landmark_error_boxplot.png")
     if len({r["perturbation_deg"] for r in rows}) > 1:
         _perturbation_plot(summary, methods, folder / "perturbation.png")

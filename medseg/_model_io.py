@@ -95,7 +95,9 @@ def save_model(model, path: Path) -> Path:
             "rejected": dict(model.rejected_),
             "checksums": {str(p.relative_to(tmp)): _sha256(p) for p in _files(tmp)},
         }
-        (tmp / "model.json").write_text(json.dumps(meta, indent=2, sort_keys=True))
+        (tmp / "model.json").write_text(
+            json.dumps(meta, indent=2, sort_keys=True), encoding="utf-8"
+        )
         if path.exists():
             old = Path(tempfile.mkdtemp(prefix=f".{path.name}.old-", dir=path.parent))
             os.replace(path, old / path.name)
@@ -120,7 +122,7 @@ def load_model(cls, path: Path):
             f"{path} is not a medseg model folder (no model.json); train one with medseg-train"
         )
     try:
-        meta = json.loads(meta_path.read_text())
+        meta = json.loads(meta_path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise ModelFileError(f"{meta_path} is not valid JSON ({exc})") from None
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:

@@ -257,7 +257,7 @@ def _load_msd(root: Path) -> Cohort:
     spec: dict = {}
     if spec_path.is_file():
         try:
-            spec = json.loads(spec_path.read_text())
+            spec = json.loads(spec_path.read_text(encoding="utf-8"))
         except (json.JSONDecodeError, UnicodeDecodeError) as exc:
             raise CohortError(f"{spec_path}: not valid JSON ({exc})") from None
         if not isinstance(spec, dict):
@@ -668,7 +668,7 @@ def write_cohort(cohort: Cohort, folder: str | os.PathLike, *, overwrite: bool =
             "file_ending": ".nii.gz",
             "training": training,
         }
-        (staging / "dataset.json").write_text(json.dumps(spec, indent=1) + "\n")
+        (staging / "dataset.json").write_text(json.dumps(spec, indent=1) + "\n", encoding="utf-8")
         with open(staging / "subjects.csv", "w", newline="") as fh:
             writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
             writer.writeheader()

@@ -80,7 +80,7 @@ def save_detector(detector, path) -> Path:
     try:
         payload = {"forests": list(detector.forests_), "region": detector.region_forest_}
         sio.dump(payload, tmp / _FORESTS)
-        (tmp / _META).write_text(json.dumps(meta, indent=2, sort_keys=True))
+        (tmp / _META).write_text(json.dumps(meta, indent=2, sort_keys=True), encoding="utf-8")
         if path.exists():
             old = Path(tempfile.mkdtemp(prefix=f".{path.name}.old.", dir=parent))
             os.replace(path, old / path.name)
@@ -113,7 +113,7 @@ def load_detector(path):
             "give the folder written by LandmarkDetector.save"
         )
     try:
-        meta = json.loads((path / _META).read_text())
+        meta = json.loads((path / _META).read_text(encoding="utf-8"))
         if meta.get("format") != FORMAT_NAME:
             raise ModelFileError(f"load: {path / _META} is not a {FORMAT_NAME} file")
         if int(meta.get("version", -1)) > FORMAT_VERSION:
