@@ -72,13 +72,12 @@ class Segmentation:
     timings: dict = field(default_factory=dict)
     image: sitk.Image | None = field(default=None, repr=False)
 
-    def plot(self, *, axis: int = 0, index: int | None = None, ax=None):
-        """Overlay of one slice: image, label contour and nearby landmarks (matplotlib)."""
-        from medseg.viz import plot_overlay
+    def plot(self, *, axis: int = 0, index: int | None = None):
+        """Image, label and overlay of one slice with the nearby landmarks (a matplotlib
+        Figure; by default the slice with the largest labelled area)."""
+        from medseg.viz import plot_slice
 
-        return plot_overlay(
-            self.image, self.label, landmarks=self.landmarks, axis=axis, index=index, ax=ax
-        )
+        return plot_slice(self.image, self.label, axis=axis, index=index, landmarks=self.landmarks)
 
     def show(self, **kwargs):
         """Interactive 3D view of the surface and landmarks (pyvista)."""

@@ -20,7 +20,7 @@ import SimpleITK as sitk
 from medseg.errors import ImageGeometryError, InputFileError, MedsegError
 from medseg.io import atomic_write, physical_to_voxel, read_image, read_label
 
-__all__ = ["save_slice_png", "save_cohort_png", "main"]
+__all__ = ["plot_slice", "save_slice_png", "save_cohort_png", "main"]
 
 _AXIS_NAMES = {0: "z", 1: "y", 2: "x"}
 
@@ -158,9 +158,19 @@ def save_slice_png(
     path : Path
         The written file.
     """
-    import matplotlib
+    return _save_figure(
+        plot_slice(image, label, axis=axis, index=index, landmarks=landmarks), path, dpi
+    )
 
-    matplotlib.use("Agg", force=False)
+
+def plot_slice(image, label=None, *, axis: int = 0, index: int | None = None, landmarks=None):
+    """The figure of :func:`save_slice_png`, returned instead of written (for notebooks).
+
+    Returns
+    -------
+    figure : matplotlib.figure.Figure
+        Image, label and overlay panels (the image alone when ``label`` is None).
+    """
     from matplotlib.figure import Figure
 
     image = _read(image, kind="image")
@@ -171,7 +181,7 @@ def save_slice_png(
     axes = fig.subplots(1, n_panels, squeeze=False)[0]
     points2d = _points_near_slice(image, landmarks, axis, index)
     _draw(axes, image2d, label2d, aspect, f"image, {_AXIS_NAMES[axis]} index {index}", points2d)
-    return _save_figure(fig, path, dpi)
+    return fig
 
 
 def save_cohort_png(

@@ -190,3 +190,12 @@ def test_cli_train_on_a_dataset_folder(cohort, tmp_path, capsys):
     assert code == 0, capsys.readouterr().err
     assert "trained on 6 of 6 cases" in capsys.readouterr().out
     assert medseg.load_model(tmp_path / "m").landmarks_.shape == (6, 12, 3)
+
+
+def test_segmentation_renders_for_a_notebook(fitted, cohort):
+    seg = fitted.segment(cohort[7].load_image())
+    figure = seg.plot()
+    assert len(figure.axes) == 3
+    overlay = figure.axes[-1]
+    assert overlay.collections, "the label contour is drawn on the overlay"
+    assert overlay.lines, "landmarks near the slice are drawn on the overlay"
