@@ -214,7 +214,7 @@ def read_results(path: str | os.PathLike) -> list[dict]:
     path = Path(path)
     if not path.is_file():
         return []
-    with path.open(newline="") as fh:
+    with path.open(newline="", encoding="utf-8") as fh:
         rows = [_parse(r) for r in csv.DictReader(fh)]
     return [r for r in rows if r is not None]
 
@@ -234,7 +234,7 @@ class _ResultsFile:
         self.path = path
         rows = read_results(path)
         with atomic_write(path) as tmp:
-            with tmp.open("w", newline="") as fh:
+            with tmp.open("w", newline="", encoding="utf-8") as fh:
                 writer = csv.DictWriter(fh, fieldnames=COLUMNS)
                 writer.writeheader()
                 for r in rows:
@@ -242,7 +242,7 @@ class _ResultsFile:
         self.done = {_row_key(r) for r in rows}
 
     def append(self, row: dict) -> None:
-        with self.path.open("a", newline="") as fh:
+        with self.path.open("a", newline="", encoding="utf-8") as fh:
             csv.DictWriter(fh, fieldnames=COLUMNS).writerow({c: _format(row[c]) for c in COLUMNS})
             fh.flush()
             os.fsync(fh.fileno())

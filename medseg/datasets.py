@@ -219,7 +219,7 @@ def _find_landmark_file(folder: Path, case_id: str) -> Path | None:
 
 def _read_subjects(path: Path, case_ids: list[str]) -> dict[str, str]:
     """Case id -> subject key from a ``subjects.csv`` (columns case/case_id/image, subject_key)."""
-    with open(path, newline="") as fh:
+    with open(path, newline="", encoding="utf-8") as fh:
         reader = csv.DictReader(fh)
         columns = [c.strip() for c in (reader.fieldnames or [])]
         key_col = next((c for c in ("subject_key", "subject") if c in columns), None)
@@ -332,7 +332,7 @@ def _load_msd(root: Path) -> Cohort:
 
 def _load_manifest(path: Path) -> Cohort:
     try:
-        with open(path, newline="") as fh:
+        with open(path, newline="", encoding="utf-8") as fh:
             reader = csv.DictReader(fh)
             header = [c.strip() for c in (reader.fieldnames or [])]
             rows = list(reader)
@@ -669,7 +669,7 @@ def write_cohort(cohort: Cohort, folder: str | os.PathLike, *, overwrite: bool =
             "training": training,
         }
         (staging / "dataset.json").write_text(json.dumps(spec, indent=1) + "\n", encoding="utf-8")
-        with open(staging / "subjects.csv", "w", newline="") as fh:
+        with open(staging / "subjects.csv", "w", newline="", encoding="utf-8") as fh:
             writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
             writer.writeheader()
             writer.writerows(rows)

@@ -76,12 +76,12 @@ def test_summary_statistics_by_hand():
 def test_report_files(tmp_path):
     _write_csv(tmp_path, ROWS)
     out = write_report(tmp_path)
-    text = out.read_text()
+    text = out.read_text(encoding="utf-8")
     assert "| shape_prior | 2 | 0.800 ± 0.100 |" in text
     assert "- `asm`: 2.67 x" in text  # 4.0 / 1.5
     assert "## Pose perturbation" in text and "| asm | 0.700 / 4.00 | 0.100 / 20.00 |" in text
 
-    raw = (tmp_path / "summary.json").read_text()
+    raw = (tmp_path / "summary.json").read_text(encoding="utf-8")
     assert "NaN" not in raw and "Infinity" not in raw
     data = json.loads(raw)
     assert raw == json.dumps(data, indent=2, sort_keys=True)
@@ -126,7 +126,7 @@ def test_run_evaluation_end_to_end(tmp_path):
         assert (out / name).read_bytes()[:8] == PNG_MAGIC
     predictions = sorted((out / "predictions" / "thresh").iterdir())
     assert [p.name for p in predictions] == [f"{c.case_id}.nii.gz" for c in cohort]
-    data = json.loads((out / "summary.json").read_text())
+    data = json.loads((out / "summary.json").read_text(encoding="utf-8"))
     assert data["mean"]["thresh"]["dice"] == pytest.approx(1.0)
     assert np.isfinite(data["mean"]["shifted"]["landmark_error_mm"])
 
