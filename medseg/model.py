@@ -24,7 +24,7 @@ from sklearn.utils import check_random_state
 from tqdm.auto import tqdm
 
 from medseg import _model_io
-from medseg.correspondence import label_surface, landmarks_from_labels
+from medseg.correspondence import cohort_landmarks, label_surface, landmarks_from_labels
 from medseg.datasets import Cohort
 from medseg.detection import CandidateSet, LandmarkDetector
 from medseg.errors import CohortError, NotFittedError
@@ -220,7 +220,9 @@ class ShapePriorSegmenter:
             landmark_source == "auto" and all(lm is not None for lm in given)
         )
         if use_given:
-            keep, landmarks, ref = _given_landmarks(cohort, given)
+            landmarks = cohort_landmarks(cohort)
+            keep = np.ones(len(landmarks), dtype=bool)
+            ref = _procrustes_medoid(landmarks)
             self.rejected_ = {}
         else:
             corr = landmarks_from_labels(
@@ -354,21 +356,14 @@ def load_model(path: str | Path) -> ShapePriorSegmenter:
     return ShapePriorSegmenter.load(path)
 
 
-def _given_landmarks(cohort: Cohort, given: list) -> tuple[np.ndarray, np.ndarray, int]:
-    """Stack user landmarks; the template is the Procrustes medoid of the shapes."""
-    missing = [case.case_id for case, lm in zip(cohort, given, strict=True) if lm is None]
-    if missing:
-        raise CohortError(f"cases without landmarks: {', '.join(missing[:5])}")
-    counts = {np.asarray(lm).shape for lm in given}
-    if len(counts) != 1:
-        raise CohortError(f"cases carry different numbers of landmarks: {sorted(counts)}")
-    landmarks = np.stack([np.asarray(lm, dtype=float) for lm in given])
-    n = len(landmarks)
+def _procrustes_medoid(shapes: np.ndarray) -> int:
+    """Index of the shape with the smallest summed Procrustes disparity to the others."""
+    n = len(shapes)
     disparity = np.zeros((n, n))
     for i in range(n):
         for j in range(i + 1, n):
-            disparity[i, j] = disparity[j, i] = procrustes(landmarks[i], landmarks[j])[2]
-    return np.ones(n, dtype=bool), landmarks, int(np.argmin(disparity.sum(axis=1)))
+            disparity[i, j] = disparity[j, i] = procrustes(shapes[i], shapes[j])[2]
+    return int(np.argmin(disparity.sum(axis=1)))
 
 
 def _jittered(shapes: np.ndarray, sigma: float, copies: int, rng) -> np.ndarray:
