@@ -11,7 +11,7 @@ from tqdm.auto import tqdm
 
 from medseg._cli import EXIT_FAILURE, EXIT_OK, run_cli, show_progress
 from medseg.errors import InputFileError, MedsegError
-from medseg.io import IMAGE_SUFFIXES, image_suffix, write_image, write_landmarks
+from medseg.io import IMAGE_SUFFIXES, atomic_write, image_suffix, write_image, write_landmarks
 from medseg.model import ShapePriorSegmenter, load_model
 
 LANDMARK_FORMATS = {"mrk.json": ".mrk.json", "fcsv": ".fcsv", "csv": ".csv"}
@@ -101,9 +101,8 @@ def _segment_one(
             protect=[source],
         )
     if args.save_surface:
-        from medseg.io import atomic_write
-
-        with atomic_write(target.with_name(f"{stem}.{args.save_surface}")) as tmp:
+        surface_path = target.with_name(f"{stem}.{args.save_surface}")
+        with atomic_write(surface_path, protect=[source]) as tmp:
             seg.surface.save(str(tmp))
     gap = f", duality gap {seg.mrf.gap:.2e}" if seg.mrf is not None else ""
     return f"{source.name} -> {target}{gap}"
