@@ -5,13 +5,14 @@ from __future__ import annotations
 import os
 import secrets
 import shutil
+import tempfile
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
 from medseg.errors import InputFileError
 
-__all__ = ["atomic_write", "check_not_protected"]
+__all__ = ["atomic_folder", "atomic_write", "check_not_protected"]
 
 PathLike = str | os.PathLike
 
@@ -110,3 +111,29 @@ def atomic_write(path: PathLike, *, protect: Iterable[PathLike] = ()) -> Iterato
             os.replace(item, folder / item.name)
     finally:
         shutil.rmtree(tmp_dir, ignore_errors=True)
+
+
+@contextmanager
+def atomic_folder(path: PathLike) -> Iterator[Path]:
+    """Build a whole folder (a model, a cohort) in a staging folder, then swap it into place.
+
+    Yields an empty staging folder beside ``path``. On success an existing ``path`` is moved
+    aside, the staging folder renamed to ``path`` and the old one removed; on any exception
+    the staging folder is removed and ``path`` is left as it was.
+    """
+    path = Path(path)
+    parent = path.parent if str(path.parent) else Path(".")
+    parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{path.name}.tmp-", dir=parent))
+    try:
+        yield staging
+        if path.exists():
+            trash = Path(tempfile.mkdtemp(prefix=f".{path.name}.old-", dir=parent))
+            os.replace(path, trash / path.name)
+            os.replace(staging, path)
+            shutil.rmtree(trash, ignore_errors=True)
+        else:
+            os.replace(staging, path)
+    finally:
+        if staging.exists():
+            shutil.rmtree(staging, ignore_errors=True)

@@ -8,8 +8,8 @@ Layout of a model folder::
     detector/         written by LandmarkDetector.save (skops + JSON)
     prior.npz         written by TripletPrior.save (NPZ with a JSON header)
 
-The folder is assembled in a temporary sibling and renamed into place, so a failed save
-leaves no half-written model. Loading verifies the format version and every checksum
+The folder is built in a staging sibling and swapped into place (``atomic_folder``), so a
+failed save leaves no half-written model. Loading verifies the format version and every checksum
 before anything is deserialised.
 """
 
@@ -17,9 +17,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
-import shutil
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +24,7 @@ import SimpleITK as sitk
 
 import medseg
 from medseg.errors import InputFileError, ModelFileError
+from medseg.io import atomic_folder
 
 FORMAT = "medseg-shape-prior-segmenter"
 FORMAT_VERSION = 1
@@ -61,16 +59,12 @@ def _files(folder: Path) -> list[Path]:
 
 
 def save_model(model, path: Path) -> Path:
-    from medseg.detection import LandmarkDetector  # noqa: F401  (type of model.detector_)
-
     path = Path(path)
     if path.exists() and not (path / "model.json").is_file():
         raise InputFileError(
             f"{path} exists and is not a medseg model folder; choose another output path"
         )
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.tmp-", dir=path.parent))
-    try:
+    with atomic_folder(path) as tmp:
         mask = model.template_mask_
         vertices, faces = model.template_surface_
         np.savez_compressed(
@@ -98,16 +92,6 @@ def save_model(model, path: Path) -> Path:
         (tmp / "model.json").write_text(
             json.dumps(meta, indent=2, sort_keys=True), encoding="utf-8"
         )
-        if path.exists():
-            old = Path(tempfile.mkdtemp(prefix=f".{path.name}.old-", dir=path.parent))
-            os.replace(path, old / path.name)
-            os.replace(tmp, path)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.replace(tmp, path)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return path
 
 

@@ -15,8 +15,6 @@ from __future__ import annotations
 import csv
 import json
 import os
-import shutil
-import tempfile
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -27,7 +25,14 @@ from sklearn.utils import check_random_state
 
 from medseg._phantom import make_phantom_case, phantom_landmark_index
 from medseg.errors import CohortError, InputFileError, LabelError
-from medseg.io import read_image, read_label, read_landmarks, write_image, write_landmarks
+from medseg.io import (
+    atomic_folder,
+    read_image,
+    read_label,
+    read_landmarks,
+    write_image,
+    write_landmarks,
+)
 
 __all__ = [
     "Case",
@@ -630,9 +635,7 @@ def write_cohort(cohort: Cohort, folder: str | os.PathLike, *, overwrite: bool =
                     raise InputFileError(
                         f"cannot write cohort to {folder}: it holds the input file {source}"
                     )
-    folder.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(dir=folder.parent, prefix=f".{folder.name}.tmp-"))
-    try:
+    with atomic_folder(folder) as staging:
         for sub in ("imagesTr", "labelsTr"):
             (staging / sub).mkdir()
         training, rows = [], []
@@ -673,14 +676,4 @@ def write_cohort(cohort: Cohort, folder: str | os.PathLike, *, overwrite: bool =
             writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
             writer.writeheader()
             writer.writerows(rows)
-        if folder.exists():
-            trash = Path(tempfile.mkdtemp(dir=folder.parent, prefix=f".{folder.name}.old-"))
-            os.replace(folder, trash / folder.name)
-            os.replace(staging, folder)
-            shutil.rmtree(trash, ignore_errors=True)
-        else:
-            os.replace(staging, folder)
-    finally:
-        if staging.exists():
-            shutil.rmtree(staging, ignore_errors=True)
     return folder

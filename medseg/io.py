@@ -38,7 +38,7 @@ import numpy as np
 import SimpleITK as sitk
 from numpy.typing import ArrayLike
 
-from medseg._io_atomic import atomic_write, check_not_protected
+from medseg._io_atomic import atomic_folder, atomic_write, check_not_protected
 from medseg._io_checks import check_image, check_same_geometry
 from medseg._io_dicom import write_dicom_series
 from medseg._io_images import IMAGE_SUFFIXES, image_suffix, read_image, write_image
@@ -65,6 +65,7 @@ __all__ = [
     "write_dicom_series",
     "read_landmarks",
     "write_landmarks",
+    "atomic_folder",
     "atomic_write",
     "check_not_protected",
 ]

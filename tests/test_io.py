@@ -722,3 +722,23 @@ def test_dicom_series_errors(tmp_path):
     # a single slice file is not a volume
     with pytest.raises(ImageGeometryError, match="slice_0000.dcm.*slice"):
         mio.read_image(tmp_path / "a" / "slice_0000.dcm")
+
+
+def test_atomic_folder_replaces_on_success_and_keeps_the_old_on_failure(tmp_path):
+    from medseg.io import atomic_folder
+
+    target = tmp_path / "model"
+    with atomic_folder(target) as staging:
+        (staging / "a.txt").write_text("first", encoding="utf-8")
+    assert (target / "a.txt").read_text(encoding="utf-8") == "first"
+
+    with pytest.raises(RuntimeError):
+        with atomic_folder(target) as staging:
+            (staging / "a.txt").write_text("second", encoding="utf-8")
+            raise RuntimeError("writer failed")
+    assert (target / "a.txt").read_text(encoding="utf-8") == "first"
+
+    with atomic_folder(target) as staging:
+        (staging / "b.txt").write_text("third", encoding="utf-8")
+    assert sorted(p.name for p in target.iterdir()) == ["b.txt"]
+    assert [p.name for p in tmp_path.iterdir()] == ["model"]  # no staging or trash left

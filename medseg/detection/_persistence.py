@@ -13,9 +13,6 @@ leaves a half-written detector.
 from __future__ import annotations
 
 import json
-import os
-import shutil
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +20,7 @@ import skops.io as sio
 
 from medseg.detection._features import FeatureSettings, feature_names
 from medseg.errors import InputFileError, MedsegError, ModelFileError, NotFittedError
+from medseg.io import atomic_folder
 
 __all__ = ["save_detector", "load_detector", "FORMAT_NAME", "FORMAT_VERSION"]
 
@@ -74,23 +72,10 @@ def save_detector(detector, path) -> Path:
             "fit_time_s": float(detector.fit_time_),
         },
     }
-    parent = path.parent if str(path.parent) else Path(".")
-    parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=parent))
-    try:
+    with atomic_folder(path) as tmp:
         payload = {"forests": list(detector.forests_), "region": detector.region_forest_}
         sio.dump(payload, tmp / _FORESTS)
         (tmp / _META).write_text(json.dumps(meta, indent=2, sort_keys=True), encoding="utf-8")
-        if path.exists():
-            old = Path(tempfile.mkdtemp(prefix=f".{path.name}.old.", dir=parent))
-            os.replace(path, old / path.name)
-            os.replace(tmp, path)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp, ignore_errors=True)
     return path
 
 
