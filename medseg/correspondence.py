@@ -57,6 +57,7 @@ __all__ = [
     "label_surface",
     "landmarks_from_labels",
     "cohort_landmarks",
+    "transfer_landmarks",
     "plot_correspondences",
 ]
 
@@ -302,6 +303,71 @@ def _transfer(
         landmarks, _ = _closest_on_surface(mesh, warped_landmarks)
         _, dist = _closest_on_surface(mesh, warped_vertices)
     return landmarks, float(dist.mean()), sim.matrix()
+
+
+def transfer_landmarks(
+    reference_surface: tuple[np.ndarray, np.ndarray],
+    reference_landmarks: np.ndarray,
+    label_map,
+    *,
+    labels: int | Sequence[int] = (1,),
+    keep_largest: bool = False,
+    allow_reflection: bool = False,
+    n_registration_points: int = 1000,
+    beta: float = 2.0,
+    lam: float = 2.0,
+    outlier_weight: float = 0.02,
+    affine: bool = True,
+    rank: int | None = 40,
+    random_state=None,
+) -> np.ndarray:
+    """Carry landmarks from a reference surface onto the boundary of one more label map.
+
+    The transfer :func:`landmarks_from_labels` applies to each training case (principal
+    axes + ICP similarity, affine ICP, coherent point drift, projection onto the target's
+    triangles), with the same defaults, for a case that was not in the training set (e.g.
+    the reference landmarks of a test case in cross-validation).
+
+    Parameters
+    ----------
+    reference_surface : ((V, 3) float array, (F, 3) int array)
+        Reference boundary, mm (``CorrespondenceResult.reference_surface``).
+    reference_landmarks : (N, 3) float array, mm
+        Landmarks on that boundary.
+    label_map : SimpleITK image, nibabel image or path
+        The structure to put the landmarks on (any geometry).
+    labels, keep_largest, allow_reflection, n_registration_points, beta, lam,
+    outlier_weight, affine, rank
+        As in :func:`landmarks_from_labels`.
+    random_state : int, RandomState or None
+
+    Returns
+    -------
+    landmarks : (N, 3) float array, mm
+        On the boundary of ``label_map``, in its physical space.
+    """
+    ref_vertices = np.asarray(reference_surface[0], dtype=float)
+    ref_sample = ref_vertices[
+        farthest_point_sampling(ref_vertices, min(n_registration_points, len(ref_vertices)))
+    ]
+    tgt_vertices, tgt_faces = label_surface(label_map, labels=labels, keep_largest=keep_largest)
+    seed = int(check_random_state(random_state).randint(np.iinfo(np.int32).max))
+    landmarks, _, _ = _transfer(
+        ref_vertices,
+        ref_sample,
+        np.asarray(reference_landmarks, dtype=float),
+        tgt_vertices,
+        tgt_faces,
+        n_points=n_registration_points,
+        allow_reflection=allow_reflection,
+        beta=beta,
+        lam=lam,
+        outlier_weight=outlier_weight,
+        seed=seed,
+        affine=affine,
+        rank=rank,
+    )
+    return landmarks
 
 
 # ---------------------------------------------------------------------- main entry

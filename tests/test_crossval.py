@@ -293,13 +293,16 @@ def test_perturbed_case_keeps_grid_and_moves_landmarks_with_the_label():
 
 
 def test_transferred_reference_landmarks_match_the_phantom_truth():
-    from evaluation.references import transfer_landmarks
-    from medseg.correspondence import label_surface
+    from medseg.correspondence import label_surface, transfer_landmarks
     from medseg.datasets import make_phantom_cohort
 
     a, b = make_phantom_cohort(2, size=48, random_state=0)
     moved = transfer_landmarks(
-        label_surface(a.load_label()), a.landmarks, b.load_label(), n_points=200, random_state=0
+        label_surface(a.load_label()),
+        a.landmarks,
+        b.load_label(),
+        n_registration_points=200,
+        random_state=0,
     )
     error = np.linalg.norm(moved - b.landmarks, axis=1)
     # Exact ground-truth correspondence exists on the phantom; 1 mm voxels, ~6 mm between
