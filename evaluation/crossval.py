@@ -184,7 +184,8 @@ def check_cohort(
 def _label_array(case) -> np.ndarray:
     import SimpleITK as sitk
 
-    return sitk.GetArrayViewFromImage(case.load_label())
+    # a copy: a view of the temporary image returned by load_label would dangle
+    return sitk.GetArrayFromImage(case.load_label())
 
 
 # ----------------------------------------------------------------------------- CSV

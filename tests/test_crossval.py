@@ -76,7 +76,7 @@ class ThresholdMethod:
         rng = check_random_state(self.random_state)
         lms = np.stack([c.load_landmarks() for c in cohort])
         self.landmarks_ = lms.mean(0) + self.jitter * rng.standard_normal(lms.shape[1:])
-        arrays = [sitk.GetArrayViewFromImage(c.load_image()) for c in cohort]
+        arrays = [sitk.GetArrayFromImage(c.load_image()) for c in cohort]
         self.threshold_ = float(np.mean([(a.min() + a.max()) / 2.0 for a in arrays]))
         return self
 

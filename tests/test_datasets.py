@@ -170,7 +170,7 @@ def test_nnunet_v2_layout_with_channel_suffix(tmp_path):
     assert cohort.case_ids == ["a_case", "b_case"]
     assert cohort.labels == {"background": 0, "organ": 1}
     assert cohort[0].load_image().GetSize() == (6, 5, 4)
-    assert np.all(sitk.GetArrayViewFromImage(cohort[1].load_image()) == 0)  # b_case was k=0
+    assert np.all(sitk.GetArrayFromImage(cohort[1].load_image()) == 0)  # b_case was k=0
 
 
 def test_msd_labels_and_training_list_without_channel(tmp_path):
