@@ -24,14 +24,22 @@ from sklearn.utils import check_random_state
 from tqdm.auto import tqdm
 
 from medseg import _model_io
+from medseg._resources import (
+    check_memory,
+    detection_bytes,
+    feature_map_bytes,
+    format_bytes,
+    memory_limit_bytes,
+    triplet_mrf_bytes,
+)
 from medseg.correspondence import cohort_landmarks, label_surface, landmarks_from_labels
 from medseg.datasets import Cohort
 from medseg.detection import CandidateSet, LandmarkDetector
 from medseg.errors import CohortError, NotFittedError
 from medseg.io import as_input_type, read_image, select_labels
-from medseg.mrf import MRF, SolveResult, solve
+from medseg.mrf import DEFAULT_MAX_BYTES, MRF, SolveResult, solve
 from medseg.reconstruction import warp_mask, warp_surface
-from medseg.shape import TripletPrior
+from medseg.shape import TripletPrior, procrustes_mean, select_cliques
 
 __all__ = ["ShapePriorSegmenter", "Segmentation", "load_model"]
 
@@ -130,6 +138,12 @@ class ShapePriorSegmenter:
         Seeds every stochastic step; the same seed gives the same model.
     n_jobs : int, default 1
         Parallel jobs for the forests.
+    memory_limit_gb : float or None, default None
+        Memory (GiB) one image may take in :meth:`fit` and :meth:`segment`; the estimate is
+        checked before the work starts and a larger one is refused with
+        :class:`~medseg.errors.ResourceLimitError`, which says what to lower. None: the
+        environment variable ``MEDSEG_MEMORY_LIMIT_GB`` if set, else half the machine's
+        memory. A setting of this machine, not saved with the model.
 
     Attributes
     ----------
@@ -162,6 +176,7 @@ class ShapePriorSegmenter:
         mrf_method: str = "mplp",
         random_state=None,
         n_jobs: int = 1,
+        memory_limit_gb: float | None = None,
     ):
         self.n_landmarks = n_landmarks
         self.labels = labels
@@ -177,6 +192,7 @@ class ShapePriorSegmenter:
         self.mrf_method = mrf_method
         self.random_state = random_state
         self.n_jobs = n_jobs
+        self.memory_limit_gb = memory_limit_gb
 
     # -- training ---------------------------------------------------------------------------
 
@@ -247,8 +263,10 @@ class ShapePriorSegmenter:
         self.template_surface_ = label_surface(masks[ref])
         timings["landmarks"] = time.perf_counter() - t0
 
-        t0 = time.perf_counter()
         kept_images = [images[i] for i in np.flatnonzero(keep)]
+        self._check_fit_memory(kept_images, self.landmarks_)
+
+        t0 = time.perf_counter()
         self.detector_ = LandmarkDetector(
             n_estimators=self.n_estimators, random_state=rng, n_jobs=self.n_jobs
         ).fit(kept_images, list(self.landmarks_))
@@ -282,6 +300,9 @@ class ShapePriorSegmenter:
         self._check_is_fitted()
         source = image
         image = read_image(image)
+        limit = self._memory_limit()
+        if candidates is None:
+            self._check_detection_memory(image, limit)
         timings: dict[str, float] = {}
 
         t0 = time.perf_counter()
@@ -295,11 +316,17 @@ class ShapePriorSegmenter:
         result = None
         if use_prior:
             t0 = time.perf_counter()
-            tables = self.prior_.potential_tables(cands.positions)
+            self._check_mrf_memory(n, len(self.prior_.cliques_), cands.positions.shape[1], limit)
+            tables = self.prior_.potential_tables(cands.positions, max_table_bytes=limit)
             timings["potentials"] = time.perf_counter() - t0
             t0 = time.perf_counter()
             problem = MRF.from_triplets(unaries, self.prior_.cliques_, tables)
-            result = solve(problem, method=self.mrf_method, max_iter=self.max_iter)
+            # the MRF's memory was checked above against the limit; solve's own budget
+            # (a fixed 64 MiB of kernel blocks in its estimate) only needs raising with it
+            budget = max(DEFAULT_MAX_BYTES, memory_limit_bytes() if limit is None else limit)
+            result = solve(
+                problem, method=self.mrf_method, max_iter=self.max_iter, max_bytes=budget
+            )
             timings["mrf"] = time.perf_counter() - t0
             choice = np.asarray(result.x)
             confidence = _margin(result.min_marginals)
@@ -343,6 +370,84 @@ class ShapePriorSegmenter:
     def load(cls, path: str | Path) -> ShapePriorSegmenter:
         """Read a model written by :meth:`save`; checksums and format version are verified."""
         return _model_io.load_model(cls, Path(path))
+
+    # -- resource guards --------------------------------------------------------------------
+
+    def _memory_limit(self) -> int | None:
+        """The limit in bytes if set on the model, else None (environment / default)."""
+        if self.memory_limit_gb is None:
+            return None
+        return memory_limit_bytes(self.memory_limit_gb)
+
+    def _mrf_hint(self, n_landmarks: int, n_cliques: int, n_lab: int, limit: int) -> str:
+        fit_l = next(
+            (lab for lab in range(n_lab - 1, 0, -1)
+             if triplet_mrf_bytes(n_landmarks, n_cliques, lab, method=self.mrf_method) <= limit),
+            0,
+        )  # fmt: skip
+        lower_l = (
+            f"fewer candidates per landmark (n_candidates={fit_l} fits, now {n_lab}; set "
+            "model.n_candidates, no retraining needed)"
+            if fit_l
+            else "fewer candidates per landmark"
+        )
+        return (
+            f"{lower_l}, or fewer cliques (retrain with cliques='delaunay' or 'knn' and fewer "
+            "landmarks), or mrf_method='mplp' (SRMP keeps 4 more copies of the tables)"
+        )
+
+    def _check_mrf_memory(self, n_landmarks: int, n_cliques: int, n_lab: int, limit) -> None:
+        check_memory(
+            triplet_mrf_bytes(n_landmarks, n_cliques, n_lab, method=self.mrf_method),
+            what=(
+                f"the shape-prior MRF ({n_cliques} triplet cliques x {n_lab}^3 candidate "
+                f"triples: {format_bytes(4 * n_cliques * n_lab**3)} of potential tables, "
+                f"plus the {self.mrf_method} solver's working memory)"
+            ),
+            hint=self._mrf_hint(
+                n_landmarks, n_cliques, n_lab, memory_limit_bytes() if limit is None else limit
+            ),
+            limit=limit,
+        )
+
+    def _check_detection_memory(self, image: sitk.Image, limit: int | None) -> None:
+        shape = image.GetSize()[::-1]
+        spacing = image.GetSpacing()[::-1]
+        settings = self.detector_.features
+        check_memory(
+            detection_bytes(
+                shape, spacing=spacing, settings=settings, n_landmarks=self.detector_.n_landmarks_
+            ),
+            what=(
+                f"landmark detection on a {'x'.join(map(str, image.GetSize()))} image "
+                f"({settings.n_features} float32 feature maps and the filters' working set)"
+            ),
+            hint=(
+                "crop the image to the region of the structure, or resample it to a coarser "
+                "spacing (the feature maps grow with the number of voxels)"
+            ),
+            limit=limit,
+        )
+
+    def _check_fit_memory(self, images: list, landmarks: np.ndarray) -> None:
+        """Before training: the largest image's feature maps and the inference MRF."""
+        limit = self._memory_limit()
+        largest = max(images, key=lambda im: int(np.prod(im.GetSize())))
+        check_memory(
+            feature_map_bytes(
+                largest.GetSize()[::-1], spacing=largest.GetSpacing()[::-1],
+                settings=LandmarkDetector().features,
+            ),
+            what=(
+                f"training feature maps of the largest image "
+                f"({'x'.join(map(str, largest.GetSize()))} voxels)"
+            ),
+            hint="crop the training images around the structure, or resample them coarser",
+            limit=limit,
+        )  # fmt: skip
+        if isinstance(self.cliques, str):
+            n_cliques = len(select_cliques(procrustes_mean(landmarks), method=self.cliques))
+            self._check_mrf_memory(landmarks.shape[1], n_cliques, int(self.n_candidates), limit)
 
     def _check_is_fitted(self) -> None:
         if not hasattr(self, "detector_"):

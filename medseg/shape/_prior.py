@@ -10,7 +10,15 @@ from numpy.typing import ArrayLike
 from sklearn.base import BaseEstimator
 from sklearn.utils import check_random_state
 
-from medseg.errors import CohortError, NotFittedError, ResourceLimitError
+from medseg._resources import (
+    BYTES_PER_TRIPLE,
+    check_memory,
+    format_bytes,
+    memory_limit_bytes,
+    potential_chunk_cliques,
+    potential_table_bytes,
+)
+from medseg.errors import CohortError, NotFittedError
 from medseg.shape._cliques import _METHODS, clique_table_size, select_cliques
 from medseg.shape._density import DENSITIES, MixtureParams, fit_mixtures, mixture_logpdf
 from medseg.shape._invariants import INVARIANTS
@@ -20,9 +28,6 @@ __all__ = ["TripletPrior", "MIN_TRAINING_SHAPES"]
 
 #: fewest training shapes :meth:`TripletPrior.fit` accepts (a covariance needs spread)
 MIN_TRAINING_SHAPES = 3
-
-# bytes of working memory per candidate triple in potential_tables (float64 temporaries)
-_BYTES_PER_TRIPLE = 96
 
 
 def _in(options):
@@ -68,6 +73,34 @@ _PARAMETER_CONSTRAINTS = {
         "None or a positive integer",
     ),
 }
+
+
+def _table_hint(n_cliques: int, n_lab: int, chunk_bytes: int, limit: int | None) -> str:
+    """The largest L (at this C) and C (at this L) whose tables fit under the limit."""
+    limit = memory_limit_bytes() if limit is None else limit
+    fit_l = next(
+        (lab for lab in range(n_lab - 1, 0, -1)
+         if potential_table_bytes(n_cliques, lab, chunk_bytes=chunk_bytes) <= limit),
+        0,
+    )  # fmt: skip
+    per_clique = potential_table_bytes(1, n_lab, chunk_bytes=chunk_bytes) - 4 * n_lab**3
+    fit_c = int(max(0, (limit - per_clique) // (4 * n_lab**3)))
+    ways = []
+    if fit_l >= 1:
+        ways.append(
+            f"use at most {fit_l} candidates per landmark (now {n_lab}; the tables grow as L^3)"
+        )
+    if fit_c >= 1:
+        ways.append(
+            f"at most {min(fit_c, n_cliques - 1)} cliques (now {n_cliques}: a sparser set, "
+            "cliques='knn' or 'delaunay', or max_cliques=...)"
+        )
+    if not ways:
+        return (
+            f"the limit is below the tables of even one candidate or one clique "
+            f"({format_bytes(4 * n_lab**3)} per clique); raise it"
+        )
+    return ", or ".join(ways)
 
 
 class TripletPrior(BaseEstimator):
@@ -310,7 +343,7 @@ class TripletPrior(BaseEstimator):
         *,
         chunk_size: int | None = None,
         max_bytes: int = 256 * 2**20,
-        max_table_bytes: int = 4 * 2**30,
+        max_table_bytes: int | None = None,
     ) -> np.ndarray:
         """Potentials of every candidate triple of every clique.
 
@@ -322,8 +355,11 @@ class TripletPrior(BaseEstimator):
             Cliques evaluated together; default: as many as fit in ``max_bytes``.
         max_bytes : int, default 256 MiB
             Bound on the working memory besides the returned table.
-        max_table_bytes : int, default 4 GiB
-            Refuse (``ResourceLimitError``) to build a larger table.
+        max_table_bytes : int, optional
+            Memory limit (bytes) for the tables and the working memory together
+            (:func:`medseg._resources.potential_table_bytes`, estimated before anything is
+            allocated); default: ``MEDSEG_MEMORY_LIMIT_GB`` if set, else half the physical
+            memory. Above it, ``ResourceLimitError`` says how far to lower ``L`` or ``C``.
 
         Returns
         -------
@@ -342,17 +378,17 @@ class TripletPrior(BaseEstimator):
         if cand.shape[1] < 1 or not np.all(np.isfinite(cand)):
             raise ValueError("`candidates` must hold at least one finite position per landmark")
         n_lab = cand.shape[1]
-        size = self.table_size(n_lab)
-        if size.nbytes > max_table_bytes:
-            raise ResourceLimitError(
-                f"potential tables would need {size}; the limit is "
-                f"{max_table_bytes / 2**20:.0f} MiB (max_table_bytes). Use fewer candidates "
-                "per landmark or a sparser clique set (cliques='delaunay' or 'knn')."
-            )
         n_cliques = len(self.cliques_)
         if chunk_size is None:
-            chunk_size = max(1, int(max_bytes // (_BYTES_PER_TRIPLE * n_lab**3)))
+            chunk_size = potential_chunk_cliques(n_cliques, n_lab, chunk_bytes=max_bytes)
         chunk_size = int(max(1, min(chunk_size, n_cliques)))
+        working = chunk_size * BYTES_PER_TRIPLE * n_lab**3
+        check_memory(
+            potential_table_bytes(n_cliques, n_lab, chunk_bytes=working),
+            what=f"TripletPrior.potential_tables: {self.table_size(n_lab)}, plus working memory",
+            hint=_table_hint(n_cliques, n_lab, working, max_table_bytes),
+            limit=max_table_bytes,
+        )
         out = np.empty((n_cliques, n_lab, n_lab, n_lab), dtype=np.float32)
         mixtures = self._mixtures()
         inv_fn = INVARIANTS[self.invariant]
