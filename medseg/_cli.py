@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from collections.abc import Callable, Sequence
+from pathlib import Path
 
 from medseg.errors import MedsegError
 
@@ -50,3 +52,15 @@ def parse_labels(text: str) -> tuple[int, ...]:
             f"--label {text!r} is not a comma-separated list of positive integers (e.g. 1,2)"
         )
     return labels
+
+
+def naming(exc: MedsegError, source: str | os.PathLike) -> MedsegError:
+    """``exc`` itself if its message names ``source``, else the same error prefixed with it.
+
+    Errors raised deep in the pipeline (a degenerate landmark set, a feature map that
+    overflows) do not know which file they came from; the CLI does.
+    """
+    message = str(exc)
+    if str(source) in message or Path(source).name in message:
+        return exc
+    return type(exc)(f"{source}: {message}")

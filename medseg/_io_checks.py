@@ -19,6 +19,7 @@ __all__ = [
     "itk_reason",
     "check_direction",
     "check_image",
+    "check_finite",
     "check_same_geometry",
 ]
 
@@ -81,7 +82,7 @@ def check_image(image: sitk.Image, *, name: str = "image") -> sitk.Image:
     ImageGeometryError
         Not 3D, more than one component per voxel, a single slice, non-positive or
         non-finite spacing, a singular, sheared or non-finite direction, non-finite origin
-        or voxels.
+        or voxels, float64 voxels beyond the float32 range (medseg computes in float32).
     """
     dim = image.GetDimension()
     if dim != 3:
@@ -112,15 +113,30 @@ def check_image(image: sitk.Image, *, name: str = "image") -> sitk.Image:
     check_direction(np.asarray(image.GetDirection(), dtype=float).reshape(3, 3), name)
     if image.GetPixelID() in FLOAT_PIXELS:
         values = sitk.GetArrayViewFromImage(image)
-        finite = np.isfinite(values)
-        if not finite.all():
-            n_bad = int(finite.size - np.count_nonzero(finite))
-            first = tuple(int(i) for i in np.argwhere(~finite)[0])
-            raise ImageGeometryError(
-                f"{name}: {n_bad} voxel(s) are NaN or infinite (first at (z, y, x) = {first}); "
-                "replace them (e.g. with 0) before using the image"
-            )
+        check_finite(values, name)
+        if image.GetPixelID() == sitk.sitkFloat64 and values.size:
+            peak = float(np.abs(values).max())
+            if peak > _FLOAT32_MAX:
+                raise ImageGeometryError(
+                    f"{name}: voxel values reach {peak:.3g}, beyond the float32 range "
+                    f"(+-{_FLOAT32_MAX:.3g}) medseg computes in; rescale the image"
+                )
     return image
+
+
+_FLOAT32_MAX = float(np.finfo(np.float32).max)
+
+
+def check_finite(values: np.ndarray, name: str, *, note: str = "") -> None:
+    """Raise ImageGeometryError if a ``(z, y, x)`` voxel array holds NaN or infinite values."""
+    finite = np.isfinite(values)
+    if not finite.all():
+        n_bad = int(finite.size - np.count_nonzero(finite))
+        first = tuple(int(i) for i in np.argwhere(~finite)[0])
+        raise ImageGeometryError(
+            f"{name}: {n_bad} voxel(s) are NaN or infinite (first at (z, y, x) = {first}){note}; "
+            "replace them (e.g. with 0) before using the image"
+        )
 
 
 def check_same_geometry(

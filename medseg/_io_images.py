@@ -5,7 +5,8 @@ from __future__ import annotations
 import gzip
 import os
 import zlib
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -14,7 +15,14 @@ import numpy as np
 import SimpleITK as sitk
 
 from medseg._io_atomic import PathLike, atomic_write, check_not_protected
-from medseg._io_checks import check_image, check_same_geometry, describe, is_nibabel, itk_reason
+from medseg._io_checks import (
+    check_finite,
+    check_image,
+    check_same_geometry,
+    describe,
+    is_nibabel,
+    itk_reason,
+)
 from medseg._io_dicom import read_dicom_folder
 from medseg._io_nibabel import from_nibabel, to_nibabel
 from medseg.errors import ImageFormatError, ImageGeometryError, InputFileError
@@ -71,7 +79,8 @@ def _check_nifti_complete(path: Path) -> nib.spatialimages.SpatialImage:
     loaded) nibabel image.
     """
     try:
-        nimg = nib.load(path)
+        with _quiet_nibabel():  # nibabel logs the header fixes it makes on stderr
+            nimg = nib.load(path)
         header = nimg.header
         shape = header.get_data_shape()
         # nibabel resets the header's vox_offset after loading; the proxy keeps the real one
@@ -111,12 +120,46 @@ def _check_nifti_complete(path: Path) -> nib.spatialimages.SpatialImage:
     return nimg
 
 
+@contextmanager
+def _quiet_nibabel() -> Iterator[None]:
+    """Silence nibabel's global logger (it prints the header fixes it makes to stderr)."""
+    logger = nib.imageglobals.logger
+    disabled, logger.disabled = logger.disabled, True
+    try:
+        yield
+    finally:
+        logger.disabled = disabled
+
+
+def _check_nifti_values(path: Path, nimg: nib.spatialimages.SpatialImage) -> None:
+    """Raise ImageGeometryError for what ITK's NIfTI reader silently changes.
+
+    ITK (niftilib) replaces a zero voxel spacing by 1 and a negative one by its absolute
+    value, and reads NaN and infinite voxels as 0: the image would be used with a geometry
+    or values it does not have. The raw header is read again here, unfixed.
+    """
+    with nimg.file_map["image"].get_prepare_fileobj("rb") as fobj:
+        raw = type(nimg.header).from_fileobj(fobj, check=False)
+    n_spatial = int(np.clip(raw["dim"][0], 0, 3))
+    pixdim = np.asarray(raw["pixdim"][1 : n_spatial + 1], dtype=float)
+    if not np.all(np.isfinite(pixdim)) or np.any(pixdim <= 0):
+        raise ImageGeometryError(
+            f"{str(path)!r}: voxel spacing (pixdim) {tuple(pixdim.tolist())} in the NIfTI "
+            "header must be finite and positive (ITK would silently replace it); fix the "
+            "header, e.g. with nibabel's header.set_zooms"
+        )
+    if raw.get_data_dtype().kind == "f":
+        values = np.asanyarray(nimg.dataobj.get_unscaled())
+        check_finite(values.T, repr(str(path)), note=", which ITK would read as 0")
+
+
 def _read_file(path: Path) -> sitk.Image:
     suffix = _raw_suffix(path)
     if suffix not in READ_SUFFIXES:
         raise _unknown_format(path)
     if READ_SUFFIXES[suffix] == "NiftiImageIO":
         nimg = _check_nifti_complete(path)
+        _check_nifti_values(path, nimg)
         if isinstance(nimg, nib.Nifti2Image):  # ITK 5.4 cannot read NIfTI-2: use nibabel
             return from_nibabel(nimg, str(path))
     reader = sitk.ImageFileReader()
@@ -125,6 +168,12 @@ def _read_file(path: Path) -> sitk.Image:
     try:
         return reader.Execute()
     except RuntimeError as exc:
+        if "orthonormal" in itk_reason(exc):
+            raise ImageGeometryError(
+                f"{str(path)!r}: the orientation in the header (sform / qform, or direction "
+                "cosines) is singular or not orthonormal, so the voxels have no usable "
+                "position; fix the header (e.g. re-export the image from the scanner software)"
+            ) from exc
         raise ImageFormatError(
             f"{str(path)!r}: cannot read this {suffix} file, it is corrupt, truncated or not "
             f"a {suffix} image ({itk_reason(exc)})"

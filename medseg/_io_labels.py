@@ -57,15 +57,22 @@ def read_label(source: Any, reference: Any = None, *, name: str | None = None) -
         raise LabelError(f"{label_name}: label map has negative values (min {low})")
     if label.GetPixelID() not in INTEGER_PIXELS:
         target = next(
-            pid
-            for pid, dtype in (
-                (sitk.sitkUInt8, np.uint8),
-                (sitk.sitkUInt16, np.uint16),
-                (sitk.sitkUInt32, np.uint32),
-                (sitk.sitkUInt64, np.uint64),
-            )
-            if high <= np.iinfo(dtype).max
+            (
+                pid
+                for pid, dtype in (
+                    (sitk.sitkUInt8, np.uint8),
+                    (sitk.sitkUInt16, np.uint16),
+                    (sitk.sitkUInt32, np.uint32),
+                )
+                if high <= np.iinfo(dtype).max
+            ),
+            None,
         )
+        if target is None:
+            raise LabelError(
+                f"{label_name}: label map has values up to {high:.6g}, too large to be labels "
+                f"(the limit is {np.iinfo(np.uint32).max}); is this an intensity image?"
+            )
         label = sitk.Cast(label, target)
     if reference is not None:
         ref_name = describe(reference)
