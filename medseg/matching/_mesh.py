@@ -7,7 +7,12 @@ small built-in reader/writer for OFF, which pyvista cannot read without meshio.
 
 from __future__ import annotations
 
+import logging
 import os
+import re
+import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -81,8 +86,9 @@ def read_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     InputFileError
         If the file does not exist.
     MeshError
-        If the file cannot be parsed or holds no triangles. The mesh is not checked for
-        topology here: call :func:`check_mesh`.
+        If the file cannot be parsed, holds no triangles, has NaN or infinite vertex
+        coordinates or face indices outside ``[0, V)``. The mesh is not checked for topology
+        here: call :func:`check_mesh`. VTK's own messages are kept off stderr.
     """
     path = Path(path)
     if not path.is_file():
@@ -95,10 +101,17 @@ def read_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     if suffix == ".off":
         vertices, faces = _read_off(path)
     else:
-        try:
-            mesh = pv.read(str(path))
-        except Exception as exc:  # pyvista/VTK raise many types for corrupt files
-            raise MeshError(f"{path}: cannot read mesh ({exc}).") from exc
+        with _quiet_vtk() as errors:
+            try:
+                mesh = pv.read(str(path))
+            except Exception as exc:  # pyvista/VTK raise many types for corrupt files
+                errors.insert(0, str(exc))
+        if errors:
+            reason = _vtk_reason(errors)
+            raise MeshError(
+                f"{path}: cannot read this {suffix} file, it is corrupt or not a {suffix} mesh "
+                f"({reason})."
+            )
         if not isinstance(mesh, pv.PolyData):
             try:
                 mesh = mesh.extract_surface()
@@ -110,7 +123,54 @@ def read_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
         faces = np.asarray(mesh.faces, dtype=np.int64).reshape(-1, 4)[:, 1:]
     if len(faces) == 0:
         raise MeshError(f"{path}: mesh has no triangles.")
+    bad = ~np.all(np.isfinite(vertices), axis=1)
+    if bad.any():
+        raise MeshError(
+            f"{path}: {int(bad.sum())} vertices have NaN or infinite coordinates (first: vertex "
+            f"{int(np.flatnonzero(bad)[0])}); fix or re-export the mesh."
+        )
+    if faces.min() < 0 or faces.max() >= len(vertices):
+        raise MeshError(
+            f"{path}: face indices must lie in [0, {len(vertices) - 1}] (0-based, "
+            f"{len(vertices)} vertices), got range [{faces.min()}, {faces.max()}]; the file is "
+            "corrupt: re-export the mesh."
+        )
     return vertices, faces
+
+
+def _vtk_reason(errors: list[str]) -> str:
+    """The informative part of VTK's messages: ``vtkXReader: text``, without addresses."""
+    for text in errors:
+        for line in text.splitlines():
+            found = re.match(r"\W*(vtk\w+) \(0x[0-9a-fA-F]+\): (.+)", line.strip())
+            if found:
+                return re.sub(r" \(0x[0-9a-fA-F]+\)", "", f"{found.group(1)}: {found.group(2)}")
+    return "the VTK reader failed"
+
+
+@contextmanager
+def _quiet_vtk() -> Iterator[list[str]]:
+    """Keep VTK's and pyvista's reader messages off stderr; yield the list of errors seen.
+
+    VTK prints reader errors through its own logger and output window, and pyvista passes
+    them on to Python's logging and warnings: a corrupt file would print dozens of lines
+    before medseg's one-line error.
+    """
+    errors: list[str] = []
+    previous = logging.root.manager.disable
+    logging.disable(logging.CRITICAL)
+    try:
+        with (
+            pv.vtk_verbosity("off"),
+            pv.VtkErrorCatcher(send_to_logging=False) as catcher,
+            warnings.catch_warnings(record=True) as caught,
+        ):
+            warnings.simplefilter("always")
+            yield errors
+        errors.extend(str(event) for event in catcher.error_events)
+        errors.extend(str(w.message) for w in caught if "error" in str(w.message).lower())
+    finally:
+        logging.disable(previous)
 
 
 def write_mesh(path: str | os.PathLike, vertices: ArrayLike, faces: ArrayLike) -> None:
