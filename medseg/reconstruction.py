@@ -59,10 +59,25 @@ class ThinPlateSpline:
             )
         if smoothing < 0:
             raise ValueError("`smoothing` must be >= 0.")
+        _, first, counts = np.unique(source, axis=0, return_index=True, return_counts=True)
+        if smoothing == 0 and np.any(counts > 1):
+            i = int(first[np.argmax(counts > 1)])
+            j = int(np.flatnonzero(np.all(source == source[i], axis=1))[1])
+            raise ImageGeometryError(
+                f"source landmarks {i} and {j} coincide at {tuple(source[i].round(3))} mm; a "
+                "thin-plate spline needs distinct landmarks (detected landmarks collapse onto "
+                "one position when the image does not show the trained structure)"
+            )
         # Interpolate the displacement, so the affine part and far field stay well behaved.
-        self._interp = RBFInterpolator(
-            source, target - source, kernel=_TPS_KERNEL, smoothing=smoothing, degree=1
-        )
+        try:
+            self._interp = RBFInterpolator(
+                source, target - source, kernel=_TPS_KERNEL, smoothing=smoothing, degree=1
+            )
+        except np.linalg.LinAlgError as exc:
+            raise ImageGeometryError(
+                f"the thin-plate spline system is singular ({exc}): the landmarks are "
+                "degenerate (nearly coinciding or coplanar)"
+            ) from None
 
     def __call__(self, points: ArrayLike, *, chunk_size: int = 200_000) -> np.ndarray:
         """Map ``(M, 3)`` points; evaluated in chunks to bound memory."""
