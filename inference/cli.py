@@ -9,7 +9,7 @@ from pathlib import Path
 
 from tqdm.auto import tqdm
 
-from medseg._cli import EXIT_FAILURE, EXIT_OK, run_cli, show_progress
+from medseg._cli import EXIT_FAILURE, EXIT_OK, naming, run_cli, show_progress
 from medseg.errors import InputFileError, MedsegError
 from medseg.io import IMAGE_SUFFIXES, atomic_write, image_suffix, write_image, write_landmarks
 from medseg.model import ShapePriorSegmenter, load_model
@@ -129,7 +129,7 @@ def _run(args: argparse.Namespace) -> int:
             line = _segment_one(model, path, _outputs(path, output, batch, args.format), args)
         except MedsegError as exc:
             if not batch:
-                raise
+                raise naming(exc, path) from None
             failed += 1
             print(f"medseg-segment: skipped {path.name}: {exc}", file=sys.stderr)
             continue

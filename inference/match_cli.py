@@ -11,7 +11,7 @@ import numpy as np
 
 from medseg._cli import run_cli, show_progress
 from medseg.io import atomic_write, check_not_protected
-from medseg.matching import match_surfaces, read_mesh
+from medseg.matching import check_mesh, match_surfaces, read_mesh
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -60,6 +60,9 @@ def _run(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     va, fa = read_mesh(args.source)
     vb, fb = read_mesh(args.target)
+    # the matcher checks them again as "surface A / B": check here so errors name the files
+    check_mesh(va, fa, name=args.source)
+    check_mesh(vb, fb, name=args.target)
     result = match_surfaces(
         va,
         fa,
