@@ -11,18 +11,26 @@ Layout of a model folder::
 The folder is built in a staging sibling and swapped into place (``atomic_folder``), so a
 failed save leaves no half-written model. Loading verifies the format version and every checksum
 before anything is deserialised.
+
+A model folder is untrusted input: nothing on the load path uses pickle (``allow_pickle=False``
+on every ``np.load``; skops with an explicit list of trusted types), and every archive
+(``template.npz``, ``prior.npz``, ``detector/forests.skops``) is checked from its zip directory
+and ``.npy`` headers before it is unpacked (:func:`medseg._io_archive.check_archive`): an
+oversized, forged or malformed archive is refused with a :class:`ModelFileError`.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import zipfile
 from pathlib import Path
 
 import numpy as np
 import SimpleITK as sitk
 
 import medseg
+from medseg._io_archive import MAX_UNPACKED_BYTES, check_archive
 from medseg.errors import InputFileError, ModelFileError
 from medseg.io import atomic_folder
 
@@ -44,6 +52,9 @@ _PARAMS = (
     "n_jobs",
 )
 MAX_MODEL_BYTES = 2 * 1024**3
+_ARCHIVES = ("template.npz", "prior.npz", "detector/forests.skops")
+_TEMPLATE_ARRAYS = ("mask", "spacing", "origin", "direction", "landmarks", "vertices", "faces",
+                    "training_landmarks")  # fmt: skip
 
 
 def _sha256(path: Path) -> str:
@@ -119,22 +130,48 @@ def load_model(cls, path: Path):
             f"version {FORMAT_VERSION}: retrain the model or install the matching medseg"
         )
     _verify_checksums(path, meta.get("checksums"))
+    _check_archives(path)
 
-    model = cls(**meta["params"])
-    with np.load(path / "template.npz", allow_pickle=False) as npz:
-        mask = sitk.GetImageFromArray(npz["mask"])
-        mask.SetSpacing(npz["spacing"].tolist())
-        mask.SetOrigin(npz["origin"].tolist())
-        mask.SetDirection(npz["direction"].tolist())
-        model.template_mask_ = mask
-        model.template_landmarks_ = npz["landmarks"]
-        model.template_surface_ = (npz["vertices"], npz["faces"])
-        model.landmarks_ = npz["training_landmarks"]
+    params = meta.get("params")
+    if not isinstance(params, dict) or not set(params) <= set(_PARAMS):
+        unknown = sorted(set(params) - set(_PARAMS)) if isinstance(params, dict) else params
+        raise ModelFileError(f"{meta_path}: unknown or malformed model parameters {unknown!r}")
+    model = cls(**params)
+    template = path / "template.npz"
+    try:
+        with np.load(template, allow_pickle=False) as npz:
+            missing = [name for name in _TEMPLATE_ARRAYS if name not in npz.files]
+            if missing:
+                raise ModelFileError(f"{template} lacks the arrays {missing}")
+            mask = sitk.GetImageFromArray(npz["mask"])
+            mask.SetSpacing(npz["spacing"].tolist())
+            mask.SetOrigin(npz["origin"].tolist())
+            mask.SetDirection(npz["direction"].tolist())
+            model.template_mask_ = mask
+            model.template_landmarks_ = npz["landmarks"]
+            model.template_surface_ = (npz["vertices"], npz["faces"])
+            model.landmarks_ = npz["training_landmarks"]
+    except (ValueError, TypeError, RuntimeError, OSError, zipfile.BadZipFile) as exc:
+        raise ModelFileError(f"{template} is corrupt ({exc})") from None
     model.detector_ = LandmarkDetector.load(path / "detector")
     model.prior_ = TripletPrior.load(path / "prior.npz")
     model.cases_ = list(meta.get("cases", []))
     model.rejected_ = dict(meta.get("rejected", {}))
     return model
+
+
+def _check_archives(path: Path) -> None:
+    """Refuse oversized, forged or malformed archives before anything is unpacked."""
+    total = 0
+    for name in _ARCHIVES:
+        if not (path / name).is_file():
+            raise ModelFileError(f"{path} is missing {name}; the model folder is incomplete")
+        total += check_archive(path / name)
+    if total > MAX_UNPACKED_BYTES:
+        raise ModelFileError(
+            f"{path}: its archives declare {total / 1e9:.1f} GB of uncompressed content, above "
+            f"the limit of {MAX_UNPACKED_BYTES / 1e9:.1f} GB; refusing to load it"
+        )
 
 
 def _verify_checksums(path: Path, checksums) -> None:

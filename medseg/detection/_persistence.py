@@ -17,7 +17,9 @@ from pathlib import Path
 
 import numpy as np
 import skops.io as sio
+from sklearn.ensemble import ExtraTreesClassifier, RandomForestClassifier
 
+from medseg._io_archive import check_archive
 from medseg.detection._features import FeatureSettings, feature_names
 from medseg.errors import InputFileError, MedsegError, ModelFileError, NotFittedError
 from medseg.io import atomic_folder
@@ -28,8 +30,11 @@ FORMAT_NAME = "medseg.detection.LandmarkDetector"
 FORMAT_VERSION = 1
 _META = "detector.json"
 _FORESTS = "forests.skops"
-# Types a detector's skops file may hold; anything else means a tampered or foreign file.
-_TRUSTED_PREFIXES = ("sklearn.tree.", "sklearn.ensemble.", "numpy.", "builtins.")
+# Types a detector's skops file may hold beyond those skops trusts by default (scikit-learn
+# estimators without callables, numpy arrays and dtypes, builtin containers): an explicit
+# list, never ``trusted=True``. Any other type means a tampered or foreign file.
+TRUSTED_TYPES = ("sklearn.tree._tree.Tree",)
+_FOREST_TYPES = (RandomForestClassifier, ExtraTreesClassifier)
 
 
 def save_detector(detector, path) -> Path:
@@ -109,26 +114,32 @@ def load_detector(path):
         params = dict(meta["params"])
         params["features"] = FeatureSettings.from_dict(params["features"])
         fitted = meta["fitted"]
+        detector = LandmarkDetector(**params)
     except ModelFileError:
         raise
-    except (ValueError, KeyError, TypeError, MedsegError) as exc:
-        raise ModelFileError(f"load: {path / _META} is corrupt or incomplete ({exc})") from exc
+    except (ValueError, KeyError, TypeError, AttributeError, MedsegError) as exc:
+        raise ModelFileError(f"load: {path / _META} is corrupt or incomplete ({exc})") from None
+    check_archive(path / _FORESTS)  # size and .npy headers, before skops unpacks anything
     try:
         untrusted = sio.get_untrusted_types(file=path / _FORESTS)
     except Exception as exc:  # skops raises various errors on a corrupt zip
-        raise ModelFileError(f"load: {path / _FORESTS} is corrupt ({exc})") from exc
-    foreign = [t for t in untrusted if not t.startswith(_TRUSTED_PREFIXES)]
+        raise ModelFileError(f"load: {path / _FORESTS} is corrupt ({exc})") from None
+    foreign = sorted(set(untrusted) - set(TRUSTED_TYPES))
     if foreign:
         raise ModelFileError(
             f"load: {path / _FORESTS} holds unexpected types {foreign}; refusing to load a "
             "file that may have been tampered with"
         )
     try:
-        payload = sio.load(path / _FORESTS, trusted=untrusted)
-        forests, region = payload["forests"], payload["region"]
+        payload = sio.load(path / _FORESTS, trusted=list(TRUSTED_TYPES))
+        forests, region = list(payload["forests"]), payload["region"]
     except Exception as exc:
-        raise ModelFileError(f"load: {path / _FORESTS} is corrupt ({exc})") from exc
-    detector = LandmarkDetector(**params)
+        raise ModelFileError(f"load: {path / _FORESTS} is corrupt ({exc})") from None
+    if not all(isinstance(f, _FOREST_TYPES) for f in forests + [region] if f is not None):
+        raise ModelFileError(
+            f"load: {path / _FORESTS} holds objects that are not scikit-learn forests; "
+            "refusing to use it"
+        )
     detector.forests_ = list(forests)
     detector.region_forest_ = region
     detector.n_landmarks_ = int(fitted["n_landmarks"])
