@@ -23,6 +23,7 @@ from medseg.shape import (
     TripletPrior,
     clique_table_size,
     relative_distances,
+    relative_distances_and_size,
     select_cliques,
     triangle_angles,
 )
@@ -49,7 +50,7 @@ def fitted():
     base, shapes = _training_shapes()
     priors = {
         inv: TripletPrior(invariant=inv, random_state=0).fit(shapes)
-        for inv in ("distance", "angle")
+        for inv in ("distance", "distance_size", "angle")
     }
     return base, shapes, priors
 
@@ -175,10 +176,36 @@ def test_clique_potentials_are_similarity_invariant(fitted, params, which, noise
     _, shapes, priors = fitted
     # any configuration, not only a plausible one
     x = shapes[which] + np.random.default_rng(noise_seed).normal(scale=3.0, size=shapes[0].shape)
-    for prior in priors.values():
+    rigid = (params[0], 1.0, params[2], params[3])
+    for name, prior in priors.items():
         h0 = prior.clique_potentials(x)
-        h1 = prior.clique_potentials(_apply(x, params))
+        # relative distances with size are invariant to rigid motions, not to scaling
+        h1 = prior.clique_potentials(_apply(x, rigid if name == "distance_size" else params))
         np.testing.assert_allclose(h1, h0, rtol=1e-6, atol=1e-6 * np.abs(h0).max())
+
+
+def test_relative_distances_and_size_of_a_345_triangle():
+    tri = np.array([[0.0, 0.0, 0.0], [3.0, 0.0, 0.0], [3.0, 4.0, 0.0]])
+    np.testing.assert_allclose(relative_distances_and_size(tri), [0.25, 4 / 12, np.log(12.0)])
+    # scaling moves only the size coordinate, by log(scale)
+    np.testing.assert_allclose(
+        relative_distances_and_size(2.5 * tri), [0.25, 4 / 12, np.log(12.0) + np.log(2.5)]
+    )
+
+
+def test_size_aware_prior_rejects_a_shape_of_the_wrong_size():
+    # the paper's similarity invariant accepts a shape three times too large; with the
+    # size term, the prior knows the training population's size range (0.9-1.1 here)
+    rng = np.random.default_rng(3)
+    base = rng.normal(size=(N_LANDMARKS, 3)) * 10.0
+    rots = Rotation.random(30, random_state=3).as_matrix()
+    noisy = base + rng.normal(scale=0.4, size=(30, N_LANDMARKS, 3))
+    shapes = np.einsum("sij,snj->sni", rots, noisy) * rng.uniform(0.9, 1.1, (30, 1, 1))
+    paper = TripletPrior(invariant="distance", random_state=0).fit(shapes)
+    sized = TripletPrior(invariant="distance_size", random_state=0).fit(shapes)
+    np.testing.assert_allclose(paper.score_samples(3.0 * base), paper.score_samples(base))
+    assert sized.score_samples(base) > sized.score_samples(3.0 * base) + 100.0
+    assert sized.score_samples(base) > sized.score_samples(base + rng.normal(size=base.shape) * 4)
 
 
 def test_potentials_would_detect_a_non_similarity_change(fitted):
@@ -202,17 +229,22 @@ def test_prior_prefers_training_like_shapes_to_distorted_ones(fitted):
         assert prior.score_samples(base) > prior.score_samples(distorted)
 
 
-def test_gaussian_density_matches_scipy():
+@pytest.mark.parametrize(
+    ("invariant", "function"),
+    [("distance", relative_distances), ("distance_size", relative_distances_and_size)],
+)
+def test_gaussian_density_matches_scipy(invariant, function):
     _, shapes = _training_shapes(n_shapes=30, seed=2)
-    prior = TripletPrior(cliques="all", density="gaussian", reg_covar=1e-9).fit(shapes)
-    tri = shapes[:, prior.cliques_[4]]
-    samples = relative_distances(tri)
-    ref = multivariate_normal(samples.mean(0), np.cov(samples.T, bias=True) + 1e-9 * np.eye(2))
+    prior = TripletPrior(
+        cliques="all", density="gaussian", invariant=invariant, reg_covar=1e-9
+    ).fit(shapes)
+    samples = function(shapes[:, prior.cliques_[4]])
+    dim = samples.shape[1]
+    ref = multivariate_normal(samples.mean(0), np.cov(samples.T, bias=True) + 1e-9 * np.eye(dim))
     x = shapes[3] + 0.5
     np.testing.assert_allclose(
-        prior.clique_potentials(x)[4], -ref.logpdf(relative_distances(x[prior.cliques_[4]])),
-        rtol=1e-6,
-    )  # fmt: skip
+        prior.clique_potentials(x)[4], -ref.logpdf(function(x[prior.cliques_[4]])), rtol=1e-6
+    )
 
 
 def test_parzen_density_matches_scipy_gaussian_kde():
@@ -251,10 +283,13 @@ def test_identical_training_shapes_still_give_finite_potentials():
         assert np.all(np.isfinite(prior.clique_potentials(np.zeros_like(base))))
 
 
-@pytest.mark.parametrize("density", ["gmm", "parzen"])
-def test_potential_tables_agree_with_clique_potentials(fitted, density):
+@pytest.mark.parametrize(
+    ("density", "invariant"),
+    [("gmm", "distance"), ("parzen", "distance"), ("gmm", "distance_size")],
+)
+def test_potential_tables_agree_with_clique_potentials(fitted, density, invariant):
     base, shapes, _ = fitted
-    prior = TripletPrior(density=density, random_state=0).fit(shapes)
+    prior = TripletPrior(density=density, invariant=invariant, random_state=0).fit(shapes)
     rng = np.random.default_rng(1)
     n_cand = 6
     cand = base[:, None, :] + rng.normal(scale=2.0, size=(N_LANDMARKS, n_cand, 3))
@@ -340,7 +375,7 @@ def test_wrong_number_of_landmarks_is_rejected(fitted):
 # ---------------------------------------------------------------- persistence
 
 
-@pytest.mark.parametrize("invariant", ["distance", "angle"])
+@pytest.mark.parametrize("invariant", ["distance", "distance_size", "angle"])
 def test_save_load_round_trip(fitted, tmp_path, invariant):
     base, shapes, priors = fitted
     prior = priors[invariant]

@@ -1,7 +1,7 @@
 """The pose-invariant higher-order shape prior (Wang et al., MICCAI 2010).
 
 * :func:`relative_distances`, :func:`triangle_angles`: similarity-invariant descriptors of a
-  triangle of landmarks;
+  triangle of landmarks; :func:`relative_distances_and_size` adds its size;
 * :func:`select_cliques`, :func:`clique_table_size`: which triplets, and what their potential
   tables cost in memory;
 * :class:`TripletPrior`: a density per clique, potentials ``H_c = -alpha log psi_c`` for one
@@ -9,13 +9,18 @@
 """
 
 from medseg.shape._cliques import CliqueTableSize, clique_table_size, select_cliques
-from medseg.shape._invariants import relative_distances, triangle_angles
+from medseg.shape._invariants import (
+    relative_distances,
+    relative_distances_and_size,
+    triangle_angles,
+)
 from medseg.shape._persistence import prior_from_state, prior_state
 from medseg.shape._prior import MIN_TRAINING_SHAPES, TripletPrior
 from medseg.shape._procrustes import procrustes_mean
 
 __all__ = [
     "relative_distances",
+    "relative_distances_and_size",
     "triangle_angles",
     "select_cliques",
     "clique_table_size",

@@ -1,4 +1,4 @@
-"""Densities of the 2-D clique invariants, all stored as Gaussian mixtures.
+"""Densities of the clique invariants (2-D or 3-D), all stored as Gaussian mixtures.
 
 Every density kind (Gaussian mixture chosen by BIC, single Gaussian, Parzen window) is kept
 in one array form: per clique ``K`` weights, means and Cholesky factors of the precisions
@@ -26,14 +26,14 @@ _LOG_2PI = float(np.log(2.0 * np.pi))
 
 @dataclass
 class MixtureParams:
-    """Per-clique 2-D Gaussian mixtures, padded to ``K`` components.
+    """Per-clique ``D``-dimensional Gaussian mixtures, padded to ``K`` components.
 
     Attributes
     ----------
     weights : (C, K) float array
         Mixture weights; padding components have weight 0.
-    means : (C, K, 2) float array
-    precisions_cholesky : (C, K, 2, 2) float array
+    means : (C, K, D) float array
+    precisions_cholesky : (C, K, D, D) float array
         Upper-triangular ``U`` with precision ``U @ U.T`` (scikit-learn's convention).
     n_components : (C,) int array
     """
@@ -50,9 +50,9 @@ class MixtureParams:
 
 
 def _prec_chol_from_cov(cov: np.ndarray) -> np.ndarray:
-    """Upper-triangular ``U`` with ``U @ U.T = inv(cov)`` for (2, 2) ``cov``."""
+    """Upper-triangular ``U`` with ``U @ U.T = inv(cov)`` for (D, D) ``cov``."""
     chol = np.linalg.cholesky(cov)
-    return np.linalg.solve(chol, np.eye(2)).T
+    return np.linalg.solve(chol, np.eye(len(cov))).T
 
 
 def _fit_gmm(x: np.ndarray, max_components: int, reg_covar: float, rng) -> tuple:
@@ -78,12 +78,12 @@ def _fit_gmm(x: np.ndarray, max_components: int, reg_covar: float, rng) -> tuple
 
 def _fit_parzen(x: np.ndarray, reg_covar: float) -> tuple:
     # Gaussian kernels at the samples, bandwidth matrix by Scott's rule (n^(-1/(d+4)))^2 cov
-    n = len(x)
-    cov = np.atleast_2d(np.cov(x.T, bias=False)) if n > 1 else np.zeros((2, 2))
-    h2 = n ** (-2.0 / 6.0)
-    kcov = h2 * cov + reg_covar * np.eye(2)
+    n, d = x.shape
+    cov = np.atleast_2d(np.cov(x.T, bias=False)) if n > 1 else np.zeros((d, d))
+    h2 = n ** (-2.0 / (d + 4.0))
+    kcov = h2 * cov + reg_covar * np.eye(d)
     u = _prec_chol_from_cov(kcov)
-    return np.full(n, 1.0 / n), x.copy(), np.broadcast_to(u, (n, 2, 2)).copy()
+    return np.full(n, 1.0 / n), x.copy(), np.broadcast_to(u, (n, d, d)).copy()
 
 
 def fit_mixtures(
@@ -94,11 +94,11 @@ def fit_mixtures(
     reg_covar: float = 1e-5,
     random_state=None,
 ) -> MixtureParams:
-    """Fit one 2-D density per clique.
+    """Fit one ``D``-dimensional density per clique.
 
     Parameters
     ----------
-    samples : (C, S, 2) float array
+    samples : (C, S, D) float array
         Invariant of each clique in each training shape.
     kind : {"gmm", "gaussian", "parzen"}
         ``"gmm"``: Gaussian mixture with 1..``max_components`` components chosen by BIC
@@ -126,11 +126,11 @@ def fit_mixtures(
             else:
                 k = max_components if kind == "gmm" else 1
                 fits.append(_fit_gmm(x, k, reg_covar, rng))
-    c = len(fits)
+    c, dim = len(fits), samples.shape[-1]
     kmax = max(len(f[0]) for f in fits)
     weights = np.zeros((c, kmax))
-    means = np.zeros((c, kmax, 2))
-    prec = np.tile(np.eye(2), (c, kmax, 1, 1))
+    means = np.zeros((c, kmax, dim))
+    prec = np.tile(np.eye(dim), (c, kmax, 1, 1))
     ncomp = np.zeros(c, dtype=np.int64)
     for i, (w, m, u) in enumerate(fits):
         k = len(w)
@@ -143,10 +143,10 @@ def mixture_logpdf(x: np.ndarray, params: MixtureParams) -> np.ndarray:
 
     Parameters
     ----------
-    x : (C, P, 2) float array
+    x : (C, P, D) float array
         ``P`` invariant values for each of the ``C`` cliques of ``params``.
     params : MixtureParams
-        ``C`` mixtures.
+        ``C`` mixtures of dimension ``D``.
 
     Returns
     -------
@@ -156,24 +156,21 @@ def mixture_logpdf(x: np.ndarray, params: MixtureParams) -> np.ndarray:
     Notes
     -----
     The log-sum-exp over components is accumulated one component at a time, so the memory
-    is a few (C, P) arrays whatever the number of components (Parzen windows have one per
+    is a few (C, P, D) arrays whatever the number of components (Parzen windows have one per
     training shape).
     """
     u = params.precisions_cholesky
-    logdet = np.log(u[..., 0, 0]) + np.log(u[..., 1, 1])  # (C, K)
+    dim = u.shape[-1]
+    logdet = np.log(np.diagonal(u, axis1=-2, axis2=-1)).sum(-1)  # (C, K)
     with np.errstate(divide="ignore"):
         logw = np.log(params.weights)  # padding -> -inf
-    x0 = x[..., 0]
-    x1 = x[..., 1]
     run_max = None
     run_sum = None
     for k in range(params.weights.shape[1]):
-        d0 = x0 - params.means[:, k, 0, None]
-        d1 = x1 - params.means[:, k, 1, None]
-        # y = d @ U with U upper triangular: y0 = d0 U00, y1 = d0 U01 + d1 U11
-        y0 = d0 * u[:, k, 0, 0, None]
-        y1 = d0 * u[:, k, 0, 1, None] + d1 * u[:, k, 1, 1, None]
-        v = -0.5 * (y0 * y0 + y1 * y1) + (logdet[:, k] + logw[:, k] - _LOG_2PI)[:, None]
+        # Mahalanobis term: |(x - mean) @ U|^2 with U the precision's Cholesky factor
+        y = np.matmul(x - params.means[:, k, None, :], u[:, k])  # (C, P, D)
+        v = -0.5 * np.einsum("cpd,cpd->cp", y, y)
+        v += (logdet[:, k] + logw[:, k] - 0.5 * dim * _LOG_2PI)[:, None]
         if run_max is None:
             run_max, run_sum = v, np.ones_like(v)
             continue

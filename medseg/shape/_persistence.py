@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from medseg.errors import InputFileError, ModelFileError
+from medseg.shape._invariants import INVARIANTS
 
 __all__ = ["prior_state", "prior_from_state", "save_prior", "load_prior"]
 
@@ -60,12 +61,15 @@ def prior_from_state(cls, header: dict, arrays: dict, *, source: str = "the mode
         raise ModelFileError(f"{source} is incomplete or corrupt: missing {exc}") from None
     c = len(get["cliques_"])
     k = get["weights_"].shape[-1] if get["weights_"].ndim == 2 else -1
+    dim = get["means_"].shape[-1] if get["means_"].ndim == 3 else -1
+    if dim not in (2, 3):
+        raise ModelFileError(f"{source} is corrupt: invariants of dimension {dim}, not 2 or 3")
     expected = {
         "mean_shape_": (n, 3),
         "cliques_": (c, 3),
         "weights_": (c, k),
-        "means_": (c, k, 2),
-        "precisions_cholesky_": (c, k, 2, 2),
+        "means_": (c, k, dim),
+        "precisions_cholesky_": (c, k, dim, dim),
         "n_components_": (c,),
     }
     for name, shape in expected.items():
@@ -81,12 +85,17 @@ def prior_from_state(cls, header: dict, arrays: dict, *, source: str = "the mode
         c == 0
         or cl.min() < 0
         or cl.max() >= n
-        or not np.all(pc[..., 0, 0] > 0)
-        or not np.all(pc[..., 1, 1] > 0)
+        or not np.all(np.diagonal(pc, axis1=-2, axis2=-1) > 0)
         or not np.all(w >= 0)
         or not np.allclose(w.sum(axis=1), 1.0)
     ):
         raise ModelFileError(f"{source} is corrupt: clique indices or precisions are invalid")
+    expected_dim = INVARIANTS[params["invariant"]](1.0, 1.0, 1.0).shape[-1]
+    if dim != expected_dim:
+        raise ModelFileError(
+            f"{source} is corrupt: {dim}-D densities for the {expected_dim}-D invariant "
+            f"{params['invariant']!r}"
+        )
     cliques_param = params.pop("cliques")
     params.pop("random_state", None)
     prior = cls(

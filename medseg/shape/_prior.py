@@ -118,8 +118,10 @@ class TripletPrior(BaseEstimator):
         or the cliques themselves.
     density : {"gmm", "gaussian", "parzen"}, default "gmm"
         Gaussian mixture with components chosen by BIC, one Gaussian, or a Parzen window.
-    invariant : {"distance", "angle"}, default "distance"
-        :func:`relative_distances` or :func:`triangle_angles`.
+    invariant : {"distance", "distance_size", "angle"}, default "distance"
+        :func:`relative_distances` (the paper's, 2-D), :func:`relative_distances_and_size`
+        (3-D: also the log perimeter, so only the scales of the training population fit)
+        or :func:`triangle_angles` (2-D).
     alpha : float, default 1.0
         Weight of the prior in the potentials.
     max_components : int, default 3
@@ -147,9 +149,9 @@ class TripletPrior(BaseEstimator):
         Mixture components per clique.
     weights_ : (C, K) float array
         Mixture weights (padding components have weight 0).
-    means_ : (C, K, 2) float array
+    means_ : (C, K, D) float array
         Component means, in the units of the invariant.
-    precisions_cholesky_ : (C, K, 2, 2) float array
+    precisions_cholesky_ : (C, K, D, D) float array
         Upper-triangular Cholesky factors of the component precisions.
     n_training_shapes_ : int
 
@@ -266,7 +268,7 @@ class TripletPrior(BaseEstimator):
                     f"`cliques` must hold triples of distinct landmark indices in [0, {n}); "
                     "got an empty array, a repeated index or an index out of range"
                 )
-        samples = self._invariants(shapes[:, cliques])  # (S, C, 2)
+        samples = self._invariants(shapes[:, cliques])  # (S, C, D)
         params = fit_mixtures(
             np.ascontiguousarray(samples.transpose(1, 0, 2)),
             kind=self.density,
@@ -293,7 +295,7 @@ class TripletPrior(BaseEstimator):
         )
 
     def _invariants(self, triangles: np.ndarray) -> np.ndarray:
-        """(..., 3, 3) triangles -> (..., 2) invariant."""
+        """(..., 3, 3) triangles -> (..., D) invariant."""
         pi, pj, pk = triangles[..., 0, :], triangles[..., 1, :], triangles[..., 2, :]
         d_ij = np.linalg.norm(pi - pj, axis=-1)
         d_jk = np.linalg.norm(pj - pk, axis=-1)
@@ -318,7 +320,7 @@ class TripletPrior(BaseEstimator):
         self._check_fitted()
         pts = self._check_points(points, "points")
         batch = pts.reshape(-1, self.n_landmarks_, 3)
-        inv = self._invariants(batch[:, self.cliques_])  # (B, C, 2)
+        inv = self._invariants(batch[:, self.cliques_])  # (B, C, D)
         logp = mixture_logpdf(np.ascontiguousarray(inv.transpose(1, 0, 2)), self._mixtures())
         out = -self.alpha * logp.T  # (B, C)
         return out.reshape(pts.shape[:-2] + (len(self.cliques_),))
@@ -400,7 +402,7 @@ class TripletPrior(BaseEstimator):
             d_jk = np.linalg.norm(xj[:, :, None] - xk[:, None], axis=-1)  # (c, b, d)
             d_ik = np.linalg.norm(xi[:, :, None] - xk[:, None], axis=-1)  # (c, a, d)
             inv = inv_fn(d_ij[:, :, :, None], d_jk[:, None, :, :], d_ik[:, :, None, :])
-            logp = mixture_logpdf(inv.reshape(len(cl), -1, 2), mixtures.subset(sl))
+            logp = mixture_logpdf(inv.reshape(len(cl), -1, inv.shape[-1]), mixtures.subset(sl))
             out[sl] = (-self.alpha * logp).reshape(len(cl), n_lab, n_lab, n_lab)
         return out
 
