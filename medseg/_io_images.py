@@ -131,12 +131,11 @@ def _quiet_nibabel() -> Iterator[None]:
         logger.disabled = disabled
 
 
-def _check_nifti_values(path: Path, nimg: nib.spatialimages.SpatialImage) -> None:
-    """Raise ImageGeometryError for what ITK's NIfTI reader silently changes.
+def _check_nifti_header(path: Path, nimg: nib.spatialimages.SpatialImage) -> None:
+    """Raise ImageGeometryError for a voxel spacing ITK's NIfTI reader would silently change.
 
     ITK (niftilib) replaces a zero voxel spacing by 1 and a negative one by its absolute
-    value, and reads NaN and infinite voxels as 0: the image would be used with a geometry
-    or values it does not have. The raw header is read again here, unfixed.
+    value; nibabel fixes its copy of the header too. The raw header is read again, unfixed.
     """
     with nimg.file_map["image"].get_prepare_fileobj("rb") as fobj:
         raw = type(nimg.header).from_fileobj(fobj, check=False)
@@ -148,7 +147,14 @@ def _check_nifti_values(path: Path, nimg: nib.spatialimages.SpatialImage) -> Non
             "header must be finite and positive (ITK would silently replace it); fix the "
             "header, e.g. with nibabel's header.set_zooms"
         )
-    if raw.get_data_dtype().kind == "f":
+
+
+def _check_nifti_finite(path: Path, nimg: nib.spatialimages.SpatialImage) -> None:
+    """Raise ImageGeometryError for NaN or infinite voxels, which ITK's reader turns into 0.
+
+    Called after ITK has read (and so checked the integrity of) the file.
+    """
+    if nimg.header.get_data_dtype().kind == "f":
         values = np.asanyarray(nimg.dataobj.get_unscaled())
         check_finite(values.T, repr(str(path)), note=", which ITK would read as 0")
 
@@ -157,16 +163,20 @@ def _read_file(path: Path) -> sitk.Image:
     suffix = _raw_suffix(path)
     if suffix not in READ_SUFFIXES:
         raise _unknown_format(path)
+    nimg = None
     if READ_SUFFIXES[suffix] == "NiftiImageIO":
         nimg = _check_nifti_complete(path)
-        _check_nifti_values(path, nimg)
+        _check_nifti_header(path, nimg)
         if isinstance(nimg, nib.Nifti2Image):  # ITK 5.4 cannot read NIfTI-2: use nibabel
             return from_nibabel(nimg, str(path))
     reader = sitk.ImageFileReader()
     reader.SetImageIO(READ_SUFFIXES[suffix])
     reader.SetFileName(str(path))
     try:
-        return reader.Execute()
+        image = reader.Execute()
+        if nimg is not None:
+            _check_nifti_finite(path, nimg)
+        return image
     except RuntimeError as exc:
         if "orthonormal" in itk_reason(exc):
             raise ImageGeometryError(
