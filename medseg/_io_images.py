@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import gzip
+import math
 import os
+import sys
 import zlib
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
@@ -82,14 +84,19 @@ def _check_nifti_complete(path: Path) -> nib.spatialimages.SpatialImage:
         with _quiet_nibabel():  # nibabel logs the header fixes it makes on stderr
             nimg = nib.load(path)
         header = nimg.header
-        shape = header.get_data_shape()
+        shape = tuple(int(n) for n in header.get_data_shape())
         # nibabel resets the header's vox_offset after loading; the proxy keeps the real one
         offset = int(getattr(nimg.dataobj, "offset", header.get_data_offset()))
-        need = offset + int(np.prod(shape)) * header.get_data_dtype().itemsize
+        need = offset + math.prod(shape) * header.get_data_dtype().itemsize
     except Exception as exc:  # nibabel raises many types for a bad header
         raise ImageFormatError(
             f"{str(path)!r}: not a readable NIfTI file (corrupt or truncated header: {exc})"
         ) from exc
+    if not shape or min(shape) < 1:
+        raise ImageFormatError(
+            f"{str(path)!r}: the NIfTI header declares image dimensions {shape}; a corrupt "
+            "header: re-export or re-download the file"
+        )
     if image_suffix(path) == ".nii.gz":
         # Fast path: the gzip trailer holds the uncompressed size mod 2**32. A truncated file
         # ends in deflate data instead, which matches the expected size with probability
@@ -118,6 +125,33 @@ def _check_nifti_complete(path: Path) -> nib.spatialimages.SpatialImage:
             f"{need}; re-export or re-download the file"
         )
     return nimg
+
+
+@contextmanager
+def _quiet_stderr() -> Iterator[None]:
+    """Keep what ITK's C++ readers print (niftilib, MetaIO, VNL, ITK warnings) off stderr.
+
+    They write to the process's file descriptor 2 directly, so a corrupt file would print
+    several lines before medseg's one-line error (the read's outcome is reported through
+    the exception). The descriptor is redirected to /dev/null for the duration of the read.
+    """
+    warnings_shown = sitk.ProcessObject.GetGlobalWarningDisplay()
+    sitk.ProcessObject.SetGlobalWarningDisplay(False)
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError):  # no usable descriptor 2 (embedded interpreter)
+        saved = None
+    try:
+        if saved is not None:
+            with open(os.devnull, "w") as devnull:
+                os.dup2(devnull.fileno(), 2)
+        yield
+    finally:
+        if saved is not None:
+            os.dup2(saved, 2)
+            os.close(saved)
+        sitk.ProcessObject.SetGlobalWarningDisplay(warnings_shown)
 
 
 @contextmanager
@@ -173,7 +207,8 @@ def _read_file(path: Path) -> sitk.Image:
     reader.SetImageIO(READ_SUFFIXES[suffix])
     reader.SetFileName(str(path))
     try:
-        image = reader.Execute()
+        with _quiet_stderr():
+            image = reader.Execute()
         if nimg is not None:
             _check_nifti_finite(path, nimg)
         return image
