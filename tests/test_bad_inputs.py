@@ -471,7 +471,7 @@ def _seed_files() -> dict[str, bytes]:
 
         sphere = pv.Icosphere(nsub=1)
         faces = sphere.faces.reshape(-1, 4)[:, 1:]
-        for name in ("seed.off", "seed.ply", "seed.stl", "seed.vtk", "seed.obj"):
+        for name in ("seed.off", "seed.ply", "seed.stl", "seed.vtk", "seed.vtp", "seed.obj"):
             write_mesh(tmp / name, np.asarray(sphere.points), faces)
             out[name] = (tmp / name).read_bytes()
     return out
@@ -523,7 +523,7 @@ def test_fuzz_image_reader(case, tmp_path):
 
 
 @_FUZZ
-@given(case=_mutations(("seed.off", "seed.ply", "seed.stl", "seed.vtk", "seed.obj")))
+@given(case=_mutations(("seed.off", "seed.ply", "seed.stl", "seed.vtk", "seed.vtp", "seed.obj")))
 def test_fuzz_mesh_reader(case, tmp_path):
     """Mutated mesh files: finite vertices and in-range faces, or a MeshError naming the file."""
     name, data = case

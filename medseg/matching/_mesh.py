@@ -66,6 +66,152 @@ def _read_off(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return vertices, np.asarray(faces, dtype=np.int64).reshape(-1, 3)
 
 
+_PLY_TYPES = {
+    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
+    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
+    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+}  # fmt: skip
+_PLY_FORMATS = {"ascii": None, "binary_little_endian": "<", "binary_big_endian": ">"}
+
+
+def _ply_header(path: Path, data: bytes) -> tuple[str | None, list, int]:
+    """``(byte order or None for ASCII, [(element, count, [(name, type, list count type)])],
+    header length)``; MeshError for anything malformed."""
+    end = data.find(b"end_header")
+    if not data.startswith(b"ply") or end < 0:
+        raise MeshError(f"{path}: not a PLY file (no 'ply' ... 'end_header' header).")
+    newline = data.find(b"\n", end)
+    if newline < 0:
+        raise MeshError(f"{path}: malformed PLY file (nothing after end_header).")
+    try:
+        lines = data[:end].decode("ascii").splitlines()[1:]
+    except UnicodeDecodeError:
+        raise MeshError(f"{path}: malformed PLY file (non-ASCII header).") from None
+    order, elements = "?", []
+    for number, line in enumerate(lines, start=2):
+        words = line.split()
+        if not words or words[0] in ("comment", "obj_info"):
+            continue
+        try:
+            if words[0] == "format" and words[1] in _PLY_FORMATS and len(words) == 3:
+                order = _PLY_FORMATS[words[1]]
+            elif words[0] == "element" and len(words) == 3 and int(words[2]) >= 0:
+                elements.append((words[1], int(words[2]), []))
+            elif words[0] == "property" and words[1] == "list" and len(words) == 5:
+                elements[-1][2].append((words[4], _PLY_TYPES[words[3]], _PLY_TYPES[words[2]]))
+            elif words[0] == "property" and len(words) == 3:
+                elements[-1][2].append((words[2], _PLY_TYPES[words[1]], None))
+            else:
+                raise ValueError(line)
+        except (ValueError, KeyError, IndexError):
+            raise MeshError(f"{path}: malformed PLY header, line {number}: {line!r}.") from None
+    if order == "?":
+        raise MeshError(f"{path}: malformed PLY header (no valid 'format' line).")
+    return order, elements, newline + 1
+
+
+def _ply_dtype(props: list, order: str, triangle: bool) -> np.dtype:
+    """Record dtype of one element, list properties taken as triangles (count + 3 indices)."""
+    fields = []
+    for name, kind, count_kind in props:
+        if count_kind is None:
+            fields.append((name, order + kind))
+        elif triangle:
+            fields += [(name + "#n", order + count_kind), (name, order + kind, (3,))]
+        else:
+            raise ValueError("list property")
+    return np.dtype(fields)
+
+
+def _read_ply(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Triangle mesh from an ASCII or binary PLY file, read with numpy only.
+
+    VTK's PLY reader crashes the process on some corrupt files (found by fuzzing); here every
+    count and size is checked against the file before anything is indexed.
+    """
+    data = path.read_bytes()
+    order, elements, start = _ply_header(path, data)
+    names = [e[0] for e in elements]
+    if "vertex" not in names or "face" not in names:
+        raise MeshError(f"{path}: PLY file needs 'vertex' and 'face' elements, has {names}.")
+    tables = {}
+    if order is None:
+        tokens = data[start:].split()
+        pos = 0
+    for name, count, props in elements:
+        is_face = name == "face"
+        lists = [p for p in props if p[2] is not None]
+        if is_face and (len(lists) != 1 or lists[0][0] not in ("vertex_indices", "vertex_index")):
+            raise MeshError(f"{path}: PLY 'face' element needs one vertex_indices list.")
+        try:
+            dtype = _ply_dtype(props, order or "", triangle=is_face)
+        except ValueError:
+            raise MeshError(
+                f"{path}: PLY element {name!r} has list properties; unsupported."
+            ) from None
+        if order is None:
+            width = len(dtype.names) + (2 if is_face else 0)
+            chunk = tokens[pos : pos + count * width]
+            pos += count * width
+            if len(chunk) != count * width:
+                raise MeshError(f"{path}: malformed PLY file (truncated {name!r} data).")
+            try:
+                table = np.asarray(chunk, dtype=float).reshape(count, width)
+            except ValueError:
+                raise MeshError(
+                    f"{path}: malformed PLY file (non-numeric {name!r} data)."
+                ) from None
+        else:
+            size = count * dtype.itemsize
+            if start + size > len(data):
+                raise MeshError(
+                    f"{path}: malformed PLY file ({name!r} data needs {size} bytes, "
+                    f"{len(data) - start} left); re-export the mesh."
+                )
+            table = np.frombuffer(data, dtype=dtype, count=count, offset=start)
+            start += size
+        tables[name] = (table, dtype, props)
+    vertex, vdtype, vprops = tables["vertex"]
+    face, fdtype, fprops = tables["face"]
+    vnames = [p[0] for p in vprops]
+    if not {"x", "y", "z"} <= set(vnames):
+        raise MeshError(f"{path}: PLY vertices lack x, y, z properties ({vnames}).")
+    list_name = next(p[0] for p in fprops if p[2] is not None)
+    if order is None:
+        vertices = vertex[:, [vnames.index(c) for c in "xyz"]]
+        column = sum(1 for p in fprops[: [p[0] for p in fprops].index(list_name)])
+        counts, faces = face[:, column], face[:, column + 1 : column + 4]
+        if np.any(faces != np.round(faces)):
+            raise MeshError(f"{path}: malformed PLY file (non-integer face indices).")
+    else:
+        vertices = np.column_stack([vertex[c] for c in "xyz"])
+        counts, faces = face[list_name + "#n"], face[list_name]
+    if np.any(counts != 3):
+        raise MeshError(f"{path}: PLY file has non-triangle faces; triangulate it first.")
+    return np.asarray(vertices, dtype=float), np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+
+
+_VTK_HEADER = re.compile(
+    rb"# vtk DataFile Version \d+\.\d+\r?\n[^\n]{0,256}\n(ASCII|BINARY)\r?\n"
+    rb"DATASET (POLYDATA|UNSTRUCTURED_GRID)\r?\n"
+)
+
+
+def _check_legacy_vtk_header(path: Path) -> None:
+    """MeshError unless a legacy ``.vtk`` file starts with a well-formed header.
+
+    VTK's legacy reader crashes the process on some malformed headers (found by fuzzing).
+    """
+    with open(path, "rb") as fh:
+        head = fh.read(512)
+    if not _VTK_HEADER.match(head):
+        raise MeshError(
+            f"{path}: not a legacy VTK polygon file (the header must be '# vtk DataFile "
+            "Version x.y', a title, ASCII or BINARY, 'DATASET POLYDATA'); re-export the mesh."
+        )
+
+
 def read_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     """Read a triangle surface mesh.
 
@@ -100,7 +246,11 @@ def read_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
         )
     if suffix == ".off":
         vertices, faces = _read_off(path)
+    elif suffix == ".ply":
+        vertices, faces = _read_ply(path)
     else:
+        if suffix == ".vtk":
+            _check_legacy_vtk_header(path)
         with _quiet_vtk() as errors:
             try:
                 mesh = pv.read(str(path))
