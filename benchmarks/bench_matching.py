@@ -18,8 +18,10 @@ Methods, all in the same run on the same pairs:
 
 Pairs: a fixed random subset (``--n-pairs``, ``--seed``) of each set's ``test_pairs.txt``.
 Results are appended to ``<out>/pairs.jsonl`` as each pair finishes (a time-boxed run still
-leaves usable numbers; ``--resume`` skips pairs already there); ``--summarise`` prints the
-aggregate table from that file.
+leaves usable numbers; ``--resume`` skips, per method, pairs that method already scored, so
+``--methods pyfmaps`` and ``--methods medseg`` may fill the same file in separate runs);
+``--summarise`` prints the aggregate table from that file (the latest score of each pair and
+method). Each score records wall time and the process's CPU time (shared machine).
 
 Usage::
 
@@ -95,13 +97,21 @@ def _score(vb, fb, gt_a, gt_b, gt_sym, maps: dict) -> dict:
     return result
 
 
+def _scored(log: Path) -> set:
+    """(set, a, b, method) already in the log."""
+    if not log.exists():
+        return set()
+    return {
+        (r["set"], r["a"], r["b"], m)
+        for r in map(json.loads, log.read_text().splitlines())
+        for m in r["scores"]
+    }
+
+
 def run(args: argparse.Namespace) -> None:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     log = out / "pairs.jsonl"
-    done = set()
-    if args.resume and log.exists():
-        done = {(r["set"], r["a"], r["b"]) for r in map(json.loads, log.read_text().splitlines())}
     rng = np.random.RandomState(args.seed)
     per_set = []
     for name in args.sets:
@@ -115,11 +125,9 @@ def run(args: argparse.Namespace) -> None:
         jobs = jobs[::-1]
     deadline = time.time() + 60 * args.minutes if args.minutes else np.inf
     for set_name, a, b in jobs:
-        if args.resume and log.exists():
-            done |= {
-                (r["set"], r["a"], r["b"]) for r in map(json.loads, log.read_text().splitlines())
-            }
-        if (set_name, a, b) in done:
+        done = _scored(log) if args.resume else set()
+        methods = [m for m in args.methods if (set_name, a, b, m) not in done]
+        if not methods:
             continue
         if time.time() > deadline:
             print("time budget reached; stopping", file=sys.stderr)
@@ -131,12 +139,14 @@ def run(args: argparse.Namespace) -> None:
         gt_a = np.loadtxt(folder / "corres" / f"{a}.vts", dtype=np.int64) - 1
         gt_b = np.loadtxt(folder / "corres" / f"{b}.vts", dtype=np.int64) - 1
         gt_sym = np.loadtxt(folder / "corres" / f"{b}.sym.vts", dtype=np.int64) - 1
-        maps, seconds, extra = {}, {}, {}
-        if "medseg" in args.methods:
-            t0 = time.perf_counter()
+        maps, seconds, cpu, extra = {}, {}, {}, {}
+        if "medseg" in methods:
+            t0, c0 = time.perf_counter(), time.process_time()
             res = match_surfaces(va, fa, vb, fb, random_state=args.seed)
             seconds["medseg"] = time.perf_counter() - t0
+            cpu["medseg"] = time.process_time() - c0
             seconds["medseg-norefine"] = seconds["medseg"] - res.timings.get("refine", 0.0)
+            cpu["medseg-norefine"] = np.nan
             maps["medseg"], maps["medseg-norefine"] = res.forward, res.forward_unrefined
             extra = {
                 "sparse_gap": res.sparse.gap,
@@ -144,13 +154,15 @@ def run(args: argparse.Namespace) -> None:
                 "one_to_one": res.one_to_one_fraction,
                 "timings": res.timings,
             }
-        if "pyfmaps" in args.methods:
-            t0 = time.perf_counter()
+        if "pyfmaps" in methods:
+            t0, c0 = time.perf_counter(), time.process_time()
             maps["pyfmaps"] = _pyfmaps(pa, pb)
             seconds["pyfmaps"] = time.perf_counter() - t0
+            cpu["pyfmaps"] = time.process_time() - c0
         scores = _score(vb, fb, gt_a, gt_b, gt_sym, maps)
         for name, fwd in maps.items():
             scores[name]["seconds"] = seconds[name]
+            scores[name]["cpu_seconds"] = cpu[name]
             scores[name]["log_area_ratio"], scores[name]["degenerate"] = _log_area_ratio(
                 va, fa, vb, fb, fwd
             )
@@ -168,24 +180,24 @@ def run(args: argparse.Namespace) -> None:
 
 def summarise(args: argparse.Namespace) -> None:
     lines = (Path(args.out) / "pairs.jsonl").read_text().splitlines()
-    unique = {(r["set"], r["a"], r["b"]): r for r in map(json.loads, lines)}
-    records = list(unique.values())
+    scores = {}  # (set, method) -> {(a, b): latest score}
+    for r in map(json.loads, lines):
+        for method, sc in r["scores"].items():
+            scores.setdefault((r["set"], method), {})[(r["a"], r["b"])] = sc
     header = "set  method  pairs  direct  sym  " + "  ".join(f"<={t}" for t in THRESHOLDS[1:])
-    print(header + "  log-area  s/pair")
-    for set_name in SETS:
-        recs = [r for r in records if r["set"] == set_name]
-        if not recs:
-            continue
-        for method in recs[0]["scores"]:
-            s = [r["scores"][method] for r in recs if method in r["scores"]]
-            curve = np.mean([x["direct_curve"] for x in s], axis=0)
-            print(
-                f"{set_name}  {method}  {len(s)}  {np.mean([x['direct_mean'] for x in s]):.4f}  "
-                f"{np.mean([x['sym_mean'] for x in s]):.4f}  "
-                + "  ".join(f"{c:.3f}" for c in curve[1:])
-                + f"  {np.mean([x['log_area_ratio'] for x in s]):.3f}"
-                + f"  {np.mean([x['seconds'] for x in s]):.1f}"
-            )
+    print(header + "  log-area  s/pair  cpu-s/pair")
+    for (set_name, method), per_pair in sorted(scores.items()):
+        s = list(per_pair.values())
+        curve = np.mean([x["direct_curve"] for x in s], axis=0)
+        cpu = [x.get("cpu_seconds") for x in s]
+        cpu = np.nanmean([np.nan if c is None else c for c in cpu])
+        print(
+            f"{set_name}  {method}  {len(s)}  {np.mean([x['direct_mean'] for x in s]):.4f}  "
+            f"{np.mean([x['sym_mean'] for x in s]):.4f}  "
+            + "  ".join(f"{c:.3f}" for c in curve[1:])
+            + f"  {np.mean([x['log_area_ratio'] for x in s]):.3f}"
+            + f"  {np.mean([x['seconds'] for x in s]):.1f}  {cpu:.1f}"
+        )
 
 
 def main(argv=None) -> int:

@@ -318,7 +318,7 @@ def test_matcher_recovers_isometric_bend():
         bent[perm],
         inv[f],
         n_sparse=20,
-        n_sparse_targets=30,
+        n_sparse_targets=80,
         n_triplets=60,
         n_align=80,
         n_vote=40,

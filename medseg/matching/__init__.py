@@ -22,6 +22,7 @@ from medseg.matching._geometry import (
     laplacian_eigenpairs,
     vertex_areas,
     vertex_normals,
+    wave_kernel_signature,
 )
 from medseg.matching._matcher import (
     PreparedSurface,
@@ -33,7 +34,10 @@ from medseg.matching._matcher import (
 from medseg.matching._mesh import MESH_SUFFIXES, check_mesh, read_mesh, write_mesh
 from medseg.matching._potentials import (
     gaussian_map_potentials,
+    geodesic_distortion_potentials,
+    intrinsic_orientation,
     mobius_potentials,
+    orientation_potentials,
     singleton_potentials,
     triplet_potentials,
 )
@@ -45,9 +49,12 @@ __all__ = [
     "SolveResult",
     "SurfaceMatch",
     "gaussian_map_potentials",
+    "geodesic_distortion_potentials",
+    "intrinsic_orientation",
     "match_surfaces",
     "matching_energy",
     "mobius_potentials",
+    "orientation_potentials",
     "prepare_surface",
     "singleton_potentials",
     "solve_matching",
@@ -75,5 +82,6 @@ __all__ = [
     "to_riemann_sphere",
     "vertex_areas",
     "vertex_normals",
+    "wave_kernel_signature",
     "write_mesh",
 ]

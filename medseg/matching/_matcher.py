@@ -32,11 +32,14 @@ from medseg.matching._geometry import (
     laplacian_eigenpairs,
     vertex_areas,
     vertex_normals,
+    wave_kernel_signature,
 )
 from medseg.matching._mesh import check_mesh
 from medseg.matching._potentials import (
     _canonical_unchecked,
+    geodesic_distortion_potentials,
     mobius_potentials,
+    orientation_potentials,
     singleton_potentials,
     triplet_potentials,
 )
@@ -52,6 +55,31 @@ __all__ = [
 
 # diffusion times of the HKS on a unit-area surface
 _HKS_TIMES = np.geomspace(5e-3, 1.0, 16)
+# WKS band on a unit-area surface: from below the first non-zero eigenvalue of elongated
+# shapes to Weyl's estimate 4 pi k of the k-th eigenvalue, for k = n_eigen
+_WKS_LOWEST = 2.0
+_N_WKS = 100
+
+
+def _standardise(x: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """Columns to zero mean and unit variance under the vertex-area weights."""
+    w = weights / weights.sum()
+    mean = w @ x
+    std = np.sqrt(w @ (x - mean) ** 2)
+    return (x - mean) / np.maximum(std, 1e-12)
+
+
+def _descriptor(v, f, evals, evecs, n_eigen):
+    """Log HKS (16 times) and log WKS (100 energies), each column standardised, the WKS
+    block weighted so that both blocks carry the same total variance."""
+    area = vertex_areas(v, f)
+    hks = heat_kernel_signature(evals, evecs, times=_HKS_TIMES)
+    wks = wave_kernel_signature(
+        evals, evecs, n_energies=_N_WKS, energy_range=(_WKS_LOWEST, 4 * np.pi * n_eigen)
+    )
+    hks = _standardise(np.log(np.maximum(hks, 1e-12)), area)
+    wks = _standardise(np.log(np.maximum(wks, 1e-12)), area)
+    return np.hstack([hks, wks * np.sqrt(hks.shape[1] / wks.shape[1])])
 
 
 @dataclass
@@ -70,7 +98,9 @@ class PreparedSurface:
     normals : (V, 3) float array
         Smoothed outward unit normals.
     descriptor : (V, D) float array
-        Log heat kernel signature at fixed times on the unit-area surface.
+        Log heat kernel signature at 16 fixed times and log wave kernel signature at 100
+        fixed energies of the unit-area surface, each column standardised over the surface
+        (area-weighted), the two blocks with equal weight.
     evals, evecs : (E,), (V, E) float arrays
         Laplace-Beltrami eigenpairs of the unit-area surface.
     samples : (S,) int array
@@ -120,8 +150,7 @@ def prepare_surface(
     scale = float(np.sqrt(face_areas(v, f).sum()))
     v = (v - v.mean(axis=0)) / scale
     evals, evecs = laplacian_eigenpairs(v, f, n_eigen=n_eigen)
-    hks = heat_kernel_signature(evals, evecs, times=_HKS_TIMES)
-    descriptor = np.log(np.maximum(hks, 1e-12))
+    descriptor = _descriptor(v, f, evals, evecs, n_eigen)
     # smoothed normals: normals of the surface after a short implicit heat flow
     lap, mass = cotangent_laplacian(v, f)
     smooth = splu((mass + 1e-3 * lap).tocsc()).solve(mass @ v)
@@ -167,6 +196,22 @@ class SurfaceMatch:
     timings: dict
 
 
+def _sparse_cliques(dist_a, n_triplets, n_neighbours, rng):
+    """Third-order cliques among the sparse points: half local (a point and two of its
+    ``n_neighbours`` geodesically nearest), half drawn from all triplets."""
+    n = len(dist_a)
+    near = np.argsort(dist_a, axis=1)[:, 1 : n_neighbours + 1]
+    local = {
+        tuple(sorted((i, j, k))) for i in range(n) for j, k in combinations(near[i].tolist(), 2)
+    }
+    local = np.asarray(sorted(local), dtype=np.int64).reshape(-1, 3)
+    n_local = min(len(local), n_triplets // 2)
+    local = local[np.sort(rng.choice(len(local), n_local, replace=False))]
+    all_trip = np.asarray(list(combinations(range(n), 3)), dtype=np.int64)
+    pick = rng.choice(len(all_trip), size=min(n_triplets - n_local, len(all_trip)), replace=False)
+    return np.unique(np.vstack([local, all_trip[pick]]), axis=0)
+
+
 def _sparse_stage(a, b, *, n_sparse, n_targets, n_candidates, n_triplets, n_align, opts, rng):
     src = a.samples[:n_sparse]
     tgt = b.samples[:n_targets]
@@ -175,12 +220,13 @@ def _sparse_stage(a, b, *, n_sparse, n_targets, n_candidates, n_triplets, n_alig
     cand = np.argsort(d, axis=1)[:, :k]  # columns of tgt
     unary = singleton_potentials(a.descriptor[src], b.descriptor[tgt], cand)
     unary = opts["lambda_descriptor"] * unary / max(np.median(unary), 1e-12)
-    all_trip = np.asarray(list(combinations(range(len(src)), 3)))
-    pick = rng.choice(len(all_trip), size=min(n_triplets, len(all_trip)), replace=False)
-    cliques = all_trip[np.sort(pick)]
+    dist_a = np.stack([a.geodesic.distance(i)[src] for i in src])
+    dist_a = 0.5 * (dist_a + dist_a.T)
+    cliques = _sparse_cliques(dist_a, n_triplets, opts["n_neighbours"], rng)
     grid = np.stack(np.meshgrid(*(np.arange(k),) * 3, indexing="ij"), -1).reshape(-1, 3)
     # labels_col[t, c, p] = cand[cliques[t, p], grid[c, p]]
     labels_col = np.stack([cand[cliques[:, p]][:, grid[:, p]] for p in range(3)], axis=-1)
+    intrinsic = opts["orientation"] == "intrinsic"
     costs = triplet_potentials(
         a.z,
         b.z,
@@ -191,9 +237,21 @@ def _sparse_stage(a, b, *, n_sparse, n_targets, n_candidates, n_triplets, n_alig
         samples_a=a.samples[:n_align],
         samples_b=b.samples[:n_align],
         lambda_mobius=opts["lambda_mobius"],
-        lambda_gauss=opts["lambda_gauss"],
+        lambda_gauss=0.0 if intrinsic else opts["lambda_gauss"],
         delta=opts["delta"],
-    ).reshape(len(cliques), k, k, k)
+    )
+    if intrinsic and opts["lambda_gauss"]:
+        log_a = np.stack([a.geodesic.log_map(i)[src] for i in src])
+        log_b = np.stack([b.geodesic.log_map(j)[tgt] for j in tgt])
+        costs = costs + opts["lambda_gauss"] * orientation_potentials(
+            log_a, log_b, cliques, labels_col
+        )
+    if opts["lambda_geodesic"]:
+        dist_b = np.stack([b.geodesic.distance(j)[tgt] for j in tgt])
+        costs = costs + opts["lambda_geodesic"] * geodesic_distortion_potentials(
+            dist_a, 0.5 * (dist_b + dist_b.T), cliques, labels_col, sigma=0.08
+        )
+    costs = costs.reshape(len(cliques), k, k, k)
     problem = MatchingProblem(
         unary=unary,
         candidates=cand,
@@ -387,8 +445,8 @@ def match_surfaces(
     faces_b: ArrayLike,
     *,
     n_sparse: int = 30,
-    n_sparse_targets: int = 45,
-    n_candidates: int = 5,
+    n_sparse_targets: int = 150,
+    n_candidates: int = 6,
     n_triplets: int = 120,
     n_align: int = 150,
     n_vote: int = 100,
@@ -397,8 +455,11 @@ def match_surfaces(
     lambda_descriptor: float = 1.0,
     lambda_mobius: float = 1.0,
     lambda_gauss: float = 1.0,
+    lambda_geodesic: float = 0.5,
+    orientation: str = "intrinsic",
+    n_neighbours: int = 5,
     delta: float = 0.2,
-    max_iter: int = 100,
+    max_iter: int = 300,
     dense_max_iter: int = 30,
     refine: bool = True,
     random_state=None,
@@ -482,6 +543,9 @@ def match_surfaces(
         "lambda_descriptor": lambda_descriptor,
         "lambda_mobius": lambda_mobius,
         "lambda_gauss": lambda_gauss,
+        "lambda_geodesic": lambda_geodesic,
+        "orientation": orientation,
+        "n_neighbours": n_neighbours,
         "delta": delta,
         "max_iter": max_iter,
         "dense_max_iter": dense_max_iter,

@@ -25,6 +25,9 @@ __all__ = [
     "singleton_potentials",
     "mobius_potentials",
     "gaussian_map_potentials",
+    "geodesic_distortion_potentials",
+    "intrinsic_orientation",
+    "orientation_potentials",
     "triplet_potentials",
 ]
 
@@ -188,6 +191,119 @@ def gaussian_map_potentials(
     det_b = np.linalg.det(nb[np.asarray(labels)])  # (T, C)
     flip = (det_a[:, None] * det_b < 0) & (np.abs(det_a)[:, None] > tau) & (np.abs(det_b) > tau)
     return flip.astype(float)
+
+
+def intrinsic_orientation(log_maps: ArrayLike, triplets: ArrayLike) -> np.ndarray:
+    """Orientation of geodesic triangles, read in the tangent planes of their corners.
+
+    Parameters
+    ----------
+    log_maps : (N, N, 2) float array
+        ``log_maps[p, q]``: point ``q`` in the logarithmic map at point ``p``
+        (:meth:`GeodesicSolver.log_map`), tangent bases counter-clockwise about the outward
+        normal.
+    triplets : (..., 3) int array
+        Indices into the first two axes of ``log_maps``.
+
+    Returns
+    -------
+    orientation : (...) int array
+        +1 when, at each of the three corners, the next corner is reached turning
+        counter-clockwise from the previous one, -1 when all three corners see the triangle
+        clockwise, 0 when the corners disagree (a side beyond a cut locus, or a degenerate
+        triangle): the sign is then not trusted. Intrinsic, hence preserved by isometries
+        (articulated poses) and reversed by mirror reflections.
+    """
+    lm = np.asarray(log_maps, float)
+    tri = np.asarray(triplets)
+    total = np.zeros(tri.shape[:-1], dtype=np.int64)
+    for r in range(3):
+        i, j, k = tri[..., r], tri[..., (r + 1) % 3], tri[..., (r + 2) % 3]
+        u, w = lm[i, j], lm[i, k]
+        total += np.sign(u[..., 0] * w[..., 1] - u[..., 1] * w[..., 0]).astype(np.int64)
+    return np.where(np.abs(total) == 3, np.sign(total), 0)
+
+
+def orientation_potentials(
+    log_maps_a: ArrayLike, log_maps_b: ArrayLike, triplets: ArrayLike, labels: ArrayLike
+) -> np.ndarray:
+    """Orientation term from intrinsic triangle orientation (a Gauss-map term robust to
+    articulation).
+
+    Parameters
+    ----------
+    log_maps_a : (N, N, 2) float array
+        Log maps among the source points (see :func:`intrinsic_orientation`).
+    log_maps_b : (M, M, 2) float array
+        Log maps among the target points.
+    triplets : (T, 3) int array
+    labels : (T, C, 3) int array
+
+    Returns
+    -------
+    theta : (T, C) float array
+        1 where both triangles have a trusted orientation and the two differ (a mirror
+        flip), else 0.
+
+    Notes
+    -----
+    The normal-determinant test of :func:`gaussian_map_potentials` reads orientation in
+    the embedding: on articulated shapes a limb's rotation changes the normals' spherical
+    triangle, and its sign flipped on about a third of the true FAUST triplets. The
+    orientation of a geodesic triangle is intrinsic: measured on true FAUST / TOSCA
+    triplets it agreed in 92-97 % of the triangles whose three corners agree (and in 3-10 %
+    under the mirrored truth).
+    """
+    oa = intrinsic_orientation(log_maps_a, triplets)[:, None]
+    ob = intrinsic_orientation(log_maps_b, labels)
+    return ((oa * ob) < 0).astype(float)
+
+
+def geodesic_distortion_potentials(
+    distances_a: ArrayLike,
+    distances_b: ArrayLike,
+    triplets: ArrayLike,
+    labels: ArrayLike,
+    *,
+    sigma: float = 0.05,
+    relative: float = 0.1,
+    cap: float = 9.0,
+) -> np.ndarray:
+    """Isometry term: how much a triplet correspondence distorts geodesic distances.
+
+    Parameters
+    ----------
+    distances_a : (N, N) float array
+        Geodesic distances between the source points (rows of ``triplets`` index them), on
+        a unit-area surface.
+    distances_b : (M, M) float array
+        Geodesic distances between the target points (``labels`` index them).
+    triplets : (T, 3) int array
+    labels : (T, C, 3) int array
+    sigma, relative : float
+        Tolerance of an edge: ``sigma + relative * d_A`` (absolute sampling error plus a
+        relative allowance for non-isometric stretch), in the distances' units.
+    cap : float
+        Upper bound of each edge's cost (a single outlier edge does not dominate).
+
+    Returns
+    -------
+    theta : (T, C) float array, dimensionless
+        ``sum over the 3 edges of min(((d_B - d_A) / (sigma + relative d_A))^2, cap)``;
+        0 for an isometric correspondence. Invariant to rigid motion and, on unit-area
+        surfaces, to scale; blind to mirror symmetry (the Möbius and Gaussian-map terms
+        see orientation).
+    """
+    da = np.asarray(distances_a, float)
+    db = np.asarray(distances_b, float)
+    tri = np.asarray(triplets)
+    lab = np.asarray(labels)
+    out = np.zeros(lab.shape[:2])
+    for p, q in ((0, 1), (1, 2), (2, 0)):
+        ga = da[tri[:, p], tri[:, q]][:, None]
+        gb = db[lab[..., p], lab[..., q]]
+        out += np.minimum(((gb - ga) / (sigma + relative * ga)) ** 2, cap)
+    return out
 
 
 def triplet_potentials(
