@@ -104,7 +104,8 @@ def check_archive(path: str | os.PathLike, *, max_bytes: int | None = None) -> i
     if n_entries > MAX_MEMBERS or directory_bytes > MAX_MEMBERS * 1024:
         raise ModelFileError(
             f"{path}: archive directory lists {n_entries} members in {directory_bytes} bytes "
-            f"(at most {MAX_MEMBERS} accepted); refusing to read it"
+            f"(at most {MAX_MEMBERS} members in {MAX_MEMBERS * 1024} bytes accepted); refusing "
+            "to read it"
         )
     try:
         with zipfile.ZipFile(path) as zf:

@@ -63,8 +63,9 @@ class ThinPlateSpline:
         if smoothing == 0 and np.any(counts > 1):
             i = int(first[np.argmax(counts > 1)])
             j = int(np.flatnonzero(np.all(source == source[i], axis=1))[1])
+            where = tuple(source[i].round(3).tolist())
             raise ImageGeometryError(
-                f"source landmarks {i} and {j} coincide at {tuple(source[i].round(3))} mm; a "
+                f"source landmarks {i} and {j} coincide at {where} mm; a "
                 "thin-plate spline needs distinct landmarks (detected landmarks collapse onto "
                 "one position when the image does not show the trained structure)"
             )
