@@ -42,6 +42,7 @@ _PARAMS = (
     "n_candidates",
     "cliques",
     "density",
+    "invariant",
     "alpha",
     "landmark_noise_mm",
     "n_noise_copies",

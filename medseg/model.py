@@ -114,7 +114,13 @@ class ShapePriorSegmenter:
     cliques : {"knn", "delaunay", "all"}, default "knn"
         Triplet cliques of the prior.
     density : {"gmm", "gaussian", "parzen"}, default "gmm"
-        Density of the relative-distance invariant per clique.
+        Density of the triplet invariant per clique.
+    invariant : {"distance_size", "distance", "angle"}, default "distance_size"
+        Triplet invariant of the prior (see :class:`medseg.shape.TripletPrior`): the paper's
+        relative distances (``"distance"``, blind to scale), or with the log perimeter of the
+        triangle (``"distance_size"``): invariant to rotation and translation and to the
+        scales of the training population; with it the MRF stops matching look-alike
+        triples of the wrong size among the candidates.
     alpha : float, default 1.0
         Weight of the prior against the detectors' evidence.
     landmark_noise_mm : float, default 1.5
@@ -167,6 +173,7 @@ class ShapePriorSegmenter:
         n_candidates: int = 20,
         cliques: str = "knn",
         density: str = "gmm",
+        invariant: str = "distance_size",
         alpha: float = 1.0,
         landmark_noise_mm: float = 1.5,
         n_noise_copies: int = 10,
@@ -183,6 +190,7 @@ class ShapePriorSegmenter:
         self.n_candidates = n_candidates
         self.cliques = cliques
         self.density = density
+        self.invariant = invariant
         self.alpha = alpha
         self.landmark_noise_mm = landmark_noise_mm
         self.n_noise_copies = n_noise_copies
@@ -274,7 +282,11 @@ class ShapePriorSegmenter:
 
         t0 = time.perf_counter()
         self.prior_ = TripletPrior(
-            cliques=self.cliques, density=self.density, alpha=self.alpha, random_state=rng
+            cliques=self.cliques,
+            density=self.density,
+            invariant=self.invariant,
+            alpha=self.alpha,
+            random_state=rng,
         ).fit(_jittered(self.landmarks_, self.landmark_noise_mm, self.n_noise_copies, rng))
         timings["prior"] = time.perf_counter() - t0
         self.fit_timings_ = timings
