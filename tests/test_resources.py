@@ -159,7 +159,12 @@ def test_potential_tables_refusal_names_a_candidate_count_that_fits(
     suggested = int(msg.split("use at most ")[1].split(" candidates")[0])
     assert suggested == 12
     assert prior.potential_tables(cand[:, :suggested]).shape == (n_cliques,) + (12,) * 3
-    assert f"now {n_cliques}" in msg  # the clique count is the other lever
+    # the other lever: a prior with the suggested number of cliques fits under the same limit
+    fewer = int(msg.split("or at most ")[1].split(" cliques")[0])
+    assert 1 <= fewer < n_cliques and f"now {n_cliques}" in msg
+    sparse = TripletPrior(cliques="knn", density="gaussian", max_cliques=fewer, random_state=0)
+    sparse.fit(np.stack([prior.mean_shape_] * 3) + np.random.default_rng(0).normal(size=(3, 16, 3)))
+    assert sparse.potential_tables(cand).shape == (fewer,) + (18,) * 3
     # an explicit limit takes precedence over the environment
     assert prior.potential_tables(cand, max_table_bytes=2**30).shape[1] == 18
 

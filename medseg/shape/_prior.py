@@ -83,8 +83,15 @@ def _table_hint(n_cliques: int, n_lab: int, chunk_bytes: int, limit: int | None)
          if potential_table_bytes(n_cliques, lab, chunk_bytes=chunk_bytes) <= limit),
         0,
     )  # fmt: skip
-    per_clique = potential_table_bytes(1, n_lab, chunk_bytes=chunk_bytes) - 4 * n_lab**3
-    fit_c = int(max(0, (limit - per_clique) // (4 * n_lab**3)))
+    # the most cliques whose tables and chunk of working memory fit (monotone in C)
+    lo, hi = 0, n_cliques - 1
+    while lo < hi:
+        mid = (lo + hi + 1) // 2
+        if potential_table_bytes(mid, n_lab, chunk_bytes=chunk_bytes) <= limit:
+            lo = mid
+        else:
+            hi = mid - 1
+    fit_c = lo
     ways = []
     if fit_l >= 1:
         ways.append(
@@ -92,7 +99,7 @@ def _table_hint(n_cliques: int, n_lab: int, chunk_bytes: int, limit: int | None)
         )
     if fit_c >= 1:
         ways.append(
-            f"at most {min(fit_c, n_cliques - 1)} cliques (now {n_cliques}: a sparser set, "
+            f"at most {fit_c} cliques (now {n_cliques}: a sparser set, "
             "cliques='knn' or 'delaunay', or max_cliques=...)"
         )
     if not ways:
@@ -387,7 +394,7 @@ class TripletPrior(BaseEstimator):
         working = chunk_size * BYTES_PER_TRIPLE * n_lab**3
         check_memory(
             potential_table_bytes(n_cliques, n_lab, chunk_bytes=working),
-            what=f"TripletPrior.potential_tables: {self.table_size(n_lab)}, plus working memory",
+            what=f"TripletPrior.potential_tables ({self.table_size(n_lab)}, and working memory)",
             hint=_table_hint(n_cliques, n_lab, working, max_table_bytes),
             limit=max_table_bytes,
         )
