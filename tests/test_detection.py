@@ -7,6 +7,7 @@ landmarks at known points of its surface.
 from __future__ import annotations
 
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -23,6 +24,7 @@ from medseg.detection import (
     non_maximum_suppression,
     sample_landmark_voxels,
 )
+from medseg.detection._context import context_features
 from medseg.detection._features import _sym3_eigvals
 from medseg.errors import (
     ImageGeometryError,
@@ -267,6 +269,7 @@ def test_multiclass_mode(blobs, small_settings):
     det = LandmarkDetector(
         features=small_settings,
         mode="multiclass",
+        auto_context=False,
         n_estimators=12,
         n_negative=150,
         n_mining_pool=4000,
@@ -274,8 +277,43 @@ def test_multiclass_mode(blobs, small_settings):
         n_jobs=2,
     ).fit([b[0] for b in blobs[:6]], [b[1] for b in blobs[:6]])
     assert len(det.forests_) == 1
+    assert det.stage1_ is None and det.n_features_ == small_settings.n_features
     recall, _ = _recall_and_error(det, blobs[6:])
     assert recall >= 0.85
+
+
+def test_context_shells_peak_at_the_distance_of_the_other_landmarks():
+    # stage-1 probability 1 at one coarse voxel: the shell means at a voxel 12 mm away are
+    # largest for the radius nearest 12 mm, and zero for radii far from it
+    coarse = np.zeros((1, 20, 20, 20), dtype=np.float32)
+    coarse[0, 10, 10, 10] = 1.0
+    radii = (4.0, 8.0, 12.0, 18.0)
+    ctx = context_features(
+        coarse,
+        spacing_zyx=np.ones(3),
+        stride=2,
+        shape=(40, 40, 40),
+        groups=np.zeros(1, dtype=int),
+        radii_mm=radii,
+    )
+    assert ctx.shape == (40, 40, 40, 4)
+    at_12mm = ctx[20, 20, 32]  # full voxel (20, 20, 20) is the peak; 12 voxels of 1 mm away
+    assert np.argmax(at_12mm) == 2
+    assert at_12mm[0] < 1e-6 * at_12mm[2]
+    # rotation invariance: the same distance along another axis gives the same features
+    np.testing.assert_allclose(ctx[20, 8, 20], at_12mm, rtol=1e-5, atol=1e-6 * at_12mm.max())
+
+
+def test_auto_context_detector_has_two_stages(fitted, small_settings):
+    assert fitted.auto_context and fitted.stage1_ is not None
+    assert fitted.stage1_.stage1_ is None  # stage 1 is a plain one-stage detector
+    n_groups = int(fitted.context_groups_.max()) + 1
+    assert fitted.n_features_ == small_settings.n_features + n_groups * len(
+        fitted.context_radii_mm_
+    )
+    assert fitted.feature_names_[-1].startswith("context_g")
+    # radii span the distances between the landmarks of the training blobs (mm)
+    assert 1.0 < min(fitted.context_radii_mm_) < max(fitted.context_radii_mm_) < 40.0
 
 
 def test_scale_augmentation_and_mining_add_samples(blobs, small_settings):
@@ -431,6 +469,10 @@ def test_load_rejects_bad_files(fitted, tmp_path):
     fitted.save(path)
     (path / "forests.skops").write_bytes(b"not a zip file")
     with pytest.raises(ModelFileError, match="corrupt"):
+        LandmarkDetector.load(path)
+    fitted.save(path)
+    shutil.rmtree(path / "stage1")
+    with pytest.raises(ModelFileError, match="stage1"):
         LandmarkDetector.load(path)
 
 

@@ -13,6 +13,12 @@ from tqdm.auto import tqdm
 
 from medseg._cli import show_progress
 from medseg.detection._candidates import CandidateSet, non_maximum_suppression, subvoxel_peak
+from medseg.detection._context import (
+    context_features,
+    context_names,
+    context_radii,
+    landmark_groups,
+)
 from medseg.detection._features import FeatureSettings, compute_features, feature_names
 from medseg.detection._sampling import sample_landmark_voxels
 from medseg.errors import (
@@ -29,6 +35,7 @@ __all__ = ["LandmarkDetector"]
 
 _MODES = ("per_landmark", "multiclass")
 _DEFAULT_FEATURES = FeatureSettings()  # frozen, so sharing it as a default is safe
+_CONTEXT_STRIDE = 2  # stage-1 maps for the context features: every other voxel per axis
 
 
 def _scaled(image: sitk.Image, pts: np.ndarray, factor: float):
@@ -83,6 +90,18 @@ class LandmarkDetector:
         region is always kept).
     forest : {"random_forest", "extra_trees"}
         Random Forests (as in the paper) or extremely randomised trees.
+    auto_context : bool
+        Two stages (see :mod:`medseg.detection._context`): stage-1 forests on the local
+        features, then the final forests on the local features plus spherical-shell means of
+        the stage-1 probability of ``context_groups`` groups of landmarks. The stage-1 maps
+        of the training images come from forests fitted without them (``context_folds``-fold
+        cross-fitting), so stage 2 learns from maps as noisy as at test time. About three
+        times the training time and twice the prediction time of one stage.
+    context_groups : int
+        Landmarks are grouped by position (k-means on the mean training shape) into this
+        many context channels per radius.
+    context_folds : int
+        Folds of the cross-fitting of the stage-1 maps of the training images.
     random_state : int, RandomState or None
         Seeds the sampling and the forests; the same seed gives the same detector.
     n_jobs : int
@@ -99,6 +118,11 @@ class LandmarkDetector:
     feature_names_ : list of str
     region_forest_ : RandomForestClassifier or None
         The cascade's first stage.
+    stage1_ : LandmarkDetector or None
+        The auto-context's first stage (``auto_context=True``).
+    context_groups_ : (n_landmarks_,) int array or None
+    context_radii_mm_ : tuple of float or None
+        Shell radii of the context features, from the training landmarks' distances.
     n_dims_ : int
         Dimension of the training images (3).
     n_samples_ : (n_landmarks_, 2) int array
@@ -124,6 +148,9 @@ class LandmarkDetector:
         region_radius_mm: float | None = 6.0,
         region_threshold: float = 0.2,
         forest: str = "random_forest",
+        auto_context: bool = True,
+        context_groups: int = 8,
+        context_folds: int = 2,
         random_state=None,
         n_jobs: int = 1,
         verbose: bool = False,
@@ -143,6 +170,9 @@ class LandmarkDetector:
         self.region_radius_mm = region_radius_mm
         self.region_threshold = region_threshold
         self.forest = forest
+        self.auto_context = auto_context
+        self.context_groups = context_groups
+        self.context_folds = context_folds
         self.random_state = random_state
         self.n_jobs = n_jobs
         self.verbose = verbose
@@ -154,7 +184,7 @@ class LandmarkDetector:
             "features positive_radius_mm n_estimators max_depth min_samples_leaf max_features "
             "mode n_negative max_positive n_mining_rounds n_mining_pool augment_scales "
             "region_radius_mm region_threshold "
-            "forest random_state n_jobs verbose"
+            "forest auto_context context_groups context_folds random_state n_jobs verbose"
         ).split()
         return {n: getattr(self, n) for n in names}
 
@@ -182,9 +212,17 @@ class LandmarkDetector:
             raise MedsegError(f"`mode` must be one of {_MODES}, got {self.mode!r}")
         if not float(self.positive_radius_mm) > 0:
             raise MedsegError(f"`positive_radius_mm` must be > 0, got {self.positive_radius_mm}")
-        for name in ("n_estimators", "n_negative", "max_positive", "min_samples_leaf"):
+        for name in (
+            "n_estimators",
+            "n_negative",
+            "max_positive",
+            "min_samples_leaf",
+            "context_groups",
+        ):
             if int(getattr(self, name)) < 1:
                 raise MedsegError(f"`{name}` must be a positive integer, got {getattr(self, name)}")
+        if int(self.context_folds) < 2:
+            raise MedsegError(f"`context_folds` must be at least 2, got {self.context_folds}")
 
     def _forest(self, seed: int, *, n_classes: int):
         cls = ExtraTreesClassifier if self.forest == "extra_trees" else RandomForestClassifier
@@ -218,6 +256,10 @@ class LandmarkDetector:
         -------
         self
         """
+        return self._fit(images, landmarks)
+
+    def _fit(self, images, landmarks, *, region_forest=None) -> LandmarkDetector:
+        """:meth:`fit`, optionally with the cascade's region forest given (not refitted)."""
         t0 = time.perf_counter()
         self._validate_params()
         images = list(images)
@@ -236,14 +278,6 @@ class LandmarkDetector:
                     f"fit: landmarks[{k}] has shape {pts.shape}; every image needs the same "
                     f"(N, 3) array in mm (N = {n_lm} from landmarks[0])"
                 )
-        rng = check_random_state(self.random_state)
-        settings = self.features
-        X_pos = [[] for _ in range(n_lm)]
-        X_neg = [[] for _ in range(n_lm)]
-        pools = []  # (features, positions mm) of random voxels per image, for mining
-        use_region = self.region_radius_mm is not None
-        n_pool = int(self.n_mining_pool) if (int(self.n_mining_rounds) > 0 or use_region) else 0
-        progress = self.verbose and show_progress()
         for k, image in enumerate(images):
             if not isinstance(image, sitk.Image) or image.GetDimension() != 3:
                 dim = image.GetDimension() if isinstance(image, sitk.Image) else None
@@ -251,13 +285,98 @@ class LandmarkDetector:
                     f"fit: images[{k}] is not a 3D SimpleITK image (dimension {dim}); "
                     "landmark detection trains on 3D images"
                 )
+        rng = check_random_state(self.random_state)
+        self.stage1_ = None
+        self.context_groups_ = None
+        self.context_radii_mm_ = None
+        if self.auto_context:
+            features_of = self._fit_stage1(images, landmarks, rng)
+            # the cascade's region forest on the local features serves both stages
+            region_forest = self.stage1_.region_forest_
+        else:
+
+            def features_of(k, image):
+                return compute_features(image, self.features)
+
+        self._fit_stage(images, landmarks, n_lm, features_of, rng, region_forest)
+        self.fit_time_ = time.perf_counter() - t0
+        return self
+
+    def _fit_stage1(self, images, landmarks, rng):
+        """Fit the auto-context's first stage; return the training images' feature function.
+
+        Stage 1 is fitted on all training images (it is what runs at prediction) and, for the
+        stage-1 maps of the training images themselves, once per fold without that fold.
+        """
+        shapes = np.stack(landmarks)
+        self.context_groups_ = landmark_groups(shapes, int(self.context_groups), random_state=rng)
+        self.context_radii_mm_ = context_radii(shapes)
+        params = {**self.get_params(), "auto_context": False, "verbose": False}
+
+        def stage(idx, region_forest=None):
+            seed = int(rng.randint(np.iinfo(np.int32).max))
+            det = LandmarkDetector(**{**params, "random_state": seed})
+            return det._fit(
+                [images[i] for i in idx],
+                [landmarks[i] for i in idx],
+                region_forest=region_forest,
+            )
+
+        self.stage1_ = stage(range(len(images)))
+        n_folds = min(int(self.context_folds), len(images))
+        fold_of = np.arange(len(images)) % n_folds
+        rng.shuffle(fold_of)
+        if n_folds < 2:  # one training image: its own stage-1 maps are all there is
+            held_out = {0: self.stage1_}
+        else:
+            held_out = {}
+            for f in range(n_folds):
+                det = stage(np.flatnonzero(fold_of != f), self.stage1_.region_forest_)
+                held_out.update({int(k): det for k in np.flatnonzero(fold_of == f)})
+
+        def features_of(k, image):
+            base = compute_features(image, self.features)
+            return self._with_context(held_out[k], image, base)
+
+        return features_of
+
+    def _with_context(self, stage1, image, base: np.ndarray) -> np.ndarray:
+        """``base`` features with the context features of ``stage1``'s maps appended."""
+        shape = base.shape[:3]
+        flat = base.reshape(-1, base.shape[-1])
+        s = _CONTEXT_STRIDE
+        gz, gy, gx = (np.arange(0, n, s) for n in shape)
+        grid = np.stack(np.meshgrid(gz, gy, gx, indexing="ij"), -1).reshape(-1, 3)
+        rows = np.ravel_multi_index(grid.T, shape)
+        proba = stage1._predict_cascade(flat[rows])  # (M, N), 0 where the cascade says no
+        coarse = proba.T.reshape((proba.shape[1], len(gz), len(gy), len(gx)))
+        ctx = context_features(
+            coarse,
+            spacing_zyx=np.asarray(image.GetSpacing(), dtype=float)[::-1],
+            stride=s,
+            shape=shape,
+            groups=self.context_groups_,
+            radii_mm=self.context_radii_mm_,
+        )
+        return np.concatenate([base, ctx], axis=-1)
+
+    def _fit_stage(self, images, landmarks, n_lm, features_of, rng, region_forest) -> None:
+        """Sample, fit the forests (and the cascade unless given), mine hard negatives, refit."""
+        X_pos = [[] for _ in range(n_lm)]
+        X_neg = [[] for _ in range(n_lm)]
+        pools = []  # (features, positions mm) of random voxels per image, for mining
+        use_region = self.region_radius_mm is not None
+        n_pool = int(self.n_mining_pool) if (int(self.n_mining_rounds) > 0 or use_region) else 0
+        progress = self.verbose and show_progress()
         scales = (1.0,) + tuple(float(v) for v in self.augment_scales)
         jobs = [
-            (image, pts, s) for image, pts in zip(images, landmarks, strict=True) for s in scales
+            (k, image, pts, s)
+            for k, (image, pts) in enumerate(zip(images, landmarks, strict=True))
+            for s in scales
         ]
-        for image, pts, factor in tqdm(jobs, desc="features", disable=not progress):
+        for k, image, pts, factor in tqdm(jobs, desc="features", disable=not progress):
             image, pts = _scaled(image, pts, factor)
-            feats = compute_features(image, settings)
+            feats = features_of(k, image)
             flat = feats.reshape(-1, feats.shape[-1])
             samples = sample_landmark_voxels(
                 image,
@@ -284,7 +403,9 @@ class LandmarkDetector:
                 "image; drop them or fix the landmark files"
             )
         seeds = rng.randint(np.iinfo(np.int32).max, size=n_lm + 2)
-        self.region_forest_ = self._fit_region(pools, X_pos, int(seeds[-2])) if use_region else None
+        if region_forest is None and use_region:
+            region_forest = self._fit_region(pools, X_pos, int(seeds[-2]))
+        self.region_forest_ = region_forest if use_region else None
         forests = self._fit_forests(X_pos, X_neg, seeds, progress)
         self.forests_ = forests
         self.n_landmarks_ = int(n_lm)
@@ -298,11 +419,16 @@ class LandmarkDetector:
         )
         self.forests_ = forests
         self.n_landmarks_ = int(n_lm)
-        self.n_features_ = int(settings.n_features)
-        self.feature_names_ = feature_names(settings)
+        self.feature_names_ = self._feature_names()
+        self.n_features_ = len(self.feature_names_)
         self.n_dims_ = 3
-        self.fit_time_ = time.perf_counter() - t0
-        return self
+
+    def _feature_names(self) -> list[str]:
+        names = feature_names(self.features)
+        if getattr(self, "stage1_", None) is not None:
+            n_groups = int(np.max(self.context_groups_)) + 1
+            names += context_names(n_groups, self.context_radii_mm_)
+        return names
 
     def _fit_region(self, pools, X_pos, seed: int):
         """Cascade stage: a forest telling voxels near any landmark from the rest.
@@ -336,7 +462,8 @@ class LandmarkDetector:
         region = getattr(self, "region_forest_", None)
         if region is None or X.shape[0] == 0:
             return np.ones(X.shape[0], dtype=bool)
-        p = region.predict_proba(X)[:, list(region.classes_).index(1)]
+        # the region forest sees the local features, the first columns of either stage
+        p = region.predict_proba(X[:, : region.n_features_in_])[:, list(region.classes_).index(1)]
         keep = p >= float(self.region_threshold)
         floor = min(X.shape[0], max(64, X.shape[0] // 100))
         if keep.sum() < floor:  # never let the cascade empty the search region
@@ -412,15 +539,20 @@ class LandmarkDetector:
         return tuple(int(s) for s in image.GetSize()[::-1])
 
     def _features(self, image, precomputed) -> np.ndarray:
+        """Every feature of the forests: the local ones (or ``precomputed``), and the context."""
         shape = self._check_image(image)
         if precomputed is None:
-            return compute_features(image, self.features)
-        feats = np.asarray(precomputed)
-        if feats.shape != shape + (self.n_features_,):
-            raise MedsegError(
-                f"`precomputed` features have shape {feats.shape}; expected "
-                f"{shape + (self.n_features_,)} from compute_features(image, detector.features)"
-            )
+            feats = compute_features(image, self.features)
+        else:
+            feats = np.asarray(precomputed)
+            n_local = self.features.n_features
+            if feats.shape != shape + (n_local,):
+                raise MedsegError(
+                    f"`precomputed` features have shape {feats.shape}; expected "
+                    f"{shape + (n_local,)} from compute_features(image, detector.features)"
+                )
+        if getattr(self, "stage1_", None) is not None:
+            feats = self._with_context(self.stage1_, image, feats)
         return feats
 
     def _mask(self, image: sitk.Image, mask, shape) -> np.ndarray | None:

@@ -5,6 +5,7 @@ A saved detector is a folder::
     detector.json    format name and version, constructor parameters, feature settings,
                      fitted metadata (number of landmarks, feature names, ...)
     forests.skops    the list of scikit-learn forests (skops format: no pickle)
+    stage1/          with auto-context: the first stage, a saved detector itself
 
 The folder is written next to its destination and renamed into place, so a failed save never
 leaves a half-written detector.
@@ -20,7 +21,7 @@ import skops.io as sio
 from sklearn.ensemble import ExtraTreesClassifier, RandomForestClassifier
 
 from medseg._io_archive import check_archive
-from medseg.detection._features import FeatureSettings, feature_names
+from medseg.detection._features import FeatureSettings
 from medseg.errors import InputFileError, MedsegError, ModelFileError, NotFittedError
 from medseg.io import atomic_folder
 
@@ -30,6 +31,7 @@ FORMAT_NAME = "medseg.detection.LandmarkDetector"
 FORMAT_VERSION = 1
 _META = "detector.json"
 _FORESTS = "forests.skops"
+_STAGE1 = "stage1"
 # Types a detector's skops file may hold beyond those skops trusts by default (scikit-learn
 # estimators without callables, numpy arrays and dtypes, builtin containers): an explicit
 # list, never ``trusted=True``. Any other type means a tampered or foreign file.
@@ -77,10 +79,16 @@ def save_detector(detector, path) -> Path:
             "fit_time_s": float(detector.fit_time_),
         },
     }
+    stage1 = getattr(detector, "stage1_", None)
+    if stage1 is not None:
+        meta["fitted"]["context_groups"] = np.asarray(detector.context_groups_).tolist()
+        meta["fitted"]["context_radii_mm"] = list(detector.context_radii_mm_)
     with atomic_folder(path) as tmp:
         payload = {"forests": list(detector.forests_), "region": detector.region_forest_}
         sio.dump(payload, tmp / _FORESTS)
         (tmp / _META).write_text(json.dumps(meta, indent=2, sort_keys=True), encoding="utf-8")
+        if stage1 is not None:
+            save_detector(stage1, tmp / _STAGE1)
     return path
 
 
@@ -112,6 +120,7 @@ def load_detector(path):
                 f"this medseg reads ({FORMAT_VERSION}); upgrade medseg"
             )
         params = dict(meta["params"])
+        params.setdefault("auto_context", False)  # saved before auto-context existed
         params["features"] = FeatureSettings.from_dict(params["features"])
         fitted = meta["fitted"]
         detector = LandmarkDetector(**params)
@@ -148,10 +157,28 @@ def load_detector(path):
     detector.n_dims_ = int(fitted["n_dims"])
     detector.n_samples_ = np.asarray(fitted["n_samples"], dtype=int)
     detector.fit_time_ = float(fitted["fit_time_s"])
+    detector.stage1_ = detector.context_groups_ = detector.context_radii_mm_ = None
+    if detector.auto_context:
+        if not (path / _STAGE1).is_dir():
+            raise ModelFileError(
+                f"load: {path} has no {_STAGE1}/ folder, which an auto-context detector needs; "
+                "the folder was modified after saving"
+            )
+        detector.stage1_ = load_detector(path / _STAGE1)
+        try:
+            groups = np.asarray(fitted["context_groups"], dtype=int)
+            radii = tuple(float(r) for r in fitted["context_radii_mm"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ModelFileError(f"load: {path / _META} is corrupt ({exc})") from None
+        if groups.shape != (detector.n_landmarks_,) or groups.min() < 0 or not radii:
+            raise ModelFileError(f"load: {path / _META} has invalid context groups or radii")
+        if detector.stage1_.n_landmarks_ != detector.n_landmarks_:
+            raise ModelFileError(f"load: {path}: stage 1 and stage 2 disagree on the landmarks")
+        detector.context_groups_, detector.context_radii_mm_ = groups, radii
     expected = len(detector.forests_) == (
         detector.n_landmarks_ if detector.mode == "per_landmark" else 1
     )
-    if not expected or detector.feature_names_ != feature_names(detector.features):
+    if not expected or detector.feature_names_ != detector._feature_names():
         raise ModelFileError(
             f"load: {path} is inconsistent (forest count or feature names do not match the "
             "settings); the folder was modified after saving"
