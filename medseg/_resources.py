@@ -54,11 +54,11 @@ FALLBACK_LIMIT_BYTES = 4 * 2**30
 _GIB = 2**30
 #: Working memory of ``TripletPrior.potential_tables`` besides its result (its ``max_bytes``).
 POTENTIAL_CHUNK_BYTES = 256 * 2**20
-# Bytes per candidate triple of one chunk of potential_tables: the float64 invariant pair
-# and its perimeter, the mixture's running max / sum, centred and whitened coordinates, the
-# component's log-density and the exp temporaries (about 12 float64 values per triple; 73 to
-# 89 bytes measured with tracemalloc). Also the rule that sizes the chunks.
-BYTES_PER_TRIPLE = 96
+# Bytes per candidate triple of one chunk of potential_tables: the float64 invariant and
+# its side sums, the mixture's running max / sum, centred and whitened coordinates, the
+# component's log-density and the exp temporaries (57 to 74 bytes measured with tracemalloc
+# on the D-dimensional densities of 2026-11-23). Also the rule that sizes the chunks.
+BYTES_PER_TRIPLE = 72
 # float64 temporaries of the closed-form 3x3 eigenvalues, per voxel of one z-slab chunk
 _EIG_TEMPORARIES = 26
 _EIG_CHUNK = 8  # slabs per chunk in compute_features
