@@ -21,7 +21,8 @@ Results are appended to ``<out>/pairs.jsonl`` as each pair finishes (a time-boxe
 leaves usable numbers; ``--resume`` skips, per method, pairs that method already scored, so
 ``--methods pyfmaps`` and ``--methods medseg`` may fill the same file in separate runs);
 ``--summarise`` prints the aggregate table from that file (the latest score of each pair and
-method). Each score records wall time and the process's CPU time (shared machine).
+method, over the pairs of each set that every method scored unless ``--all-pairs``). Each
+score records wall time and the process's CPU time (shared machine).
 
 Usage::
 
@@ -184,10 +185,18 @@ def summarise(args: argparse.Namespace) -> None:
     for r in map(json.loads, lines):
         for method, sc in r["scores"].items():
             scores.setdefault((r["set"], method), {})[(r["a"], r["b"])] = sc
+    if not args.all_pairs:  # compare the methods on the pairs all of them scored
+        for set_name in {k[0] for k in scores}:
+            keys = [k for k in scores if k[0] == set_name]
+            common = set.intersection(*(set(scores[k]) for k in keys))
+            for k in keys:
+                scores[k] = {pair: sc for pair, sc in scores[k].items() if pair in common}
     header = "set  method  pairs  direct  sym  " + "  ".join(f"<={t}" for t in THRESHOLDS[1:])
     print(header + "  log-area  s/pair  cpu-s/pair")
     for (set_name, method), per_pair in sorted(scores.items()):
         s = list(per_pair.values())
+        if not s:
+            continue
         curve = np.mean([x["direct_curve"] for x in s], axis=0)
         cpu = [x.get("cpu_seconds") for x in s]
         cpu = np.nanmean([np.nan if c is None else c for c in cpu])
@@ -211,6 +220,11 @@ def main(argv=None) -> int:
     parser.add_argument("--out", default="/tmp/bench_matching", help="results folder")
     parser.add_argument("--resume", action="store_true", help="skip pairs already scored")
     parser.add_argument("--summarise", action="store_true", help="only print the summary")
+    parser.add_argument(
+        "--all-pairs",
+        action="store_true",
+        help="summarise every pair each method scored (default: the pairs all methods scored)",
+    )
     parser.add_argument("--reverse", action="store_true", help="work through the pairs backwards")
     args = parser.parse_args(argv)
     if args.summarise:

@@ -38,6 +38,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--n-sparse", type=int, default=30, help="Sparse points on A (default: 30)."
     )
     parser.add_argument(
+        "--n-targets",
+        type=int,
+        default=150,
+        help="Farthest-point samples of B the sparse points may match (default: 150).",
+    )
+    parser.add_argument(
         "--no-refine",
         action="store_true",
         help="Skip the spectral (ZoomOut) refinement of the dense map (default: refine).",
@@ -69,7 +75,7 @@ def _run(args: argparse.Namespace) -> int:
         vb,
         fb,
         n_sparse=args.n_sparse,
-        n_sparse_targets=max(int(1.5 * args.n_sparse), args.n_sparse),
+        n_sparse_targets=max(args.n_targets, args.n_sparse),
         refine=not args.no_refine,
         random_state=args.seed,
         progress=show_progress(args.quiet),
