@@ -17,10 +17,16 @@ the first ``--warmup`` (allocator pools and caches fill during the first images)
 even 0.1 MiB per image shows as a slope of 0.1 over 100 images; a flat run has |slope| of a
 few hundredths. Wall and CPU time are reported too (the machine is shared).
 
+``--threads 1`` limits the OpenMP / BLAS pools (subprocess: ``OMP_NUM_THREADS`` and friends;
+in-process: threadpoolctl). With several pool threads glibc gives each thread its own malloc
+arena, and the RSS creeps up over the first hundred images while the arenas fill; with one
+thread it is flat from the second image on. Compare both before calling a rise a leak.
+
 Usage::
 
     python benchmarks/bench_batch_memory.py --out /tmp/batch_memory
     python benchmarks/bench_batch_memory.py --mode inprocess --n-images 100
+    python benchmarks/bench_batch_memory.py --mode both --threads 1
 
 Linux only (reads ``/proc``). Generated files go to ``--out`` (default: a temporary folder),
 never into the repository.
@@ -42,6 +48,7 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 _CLI = "import sys; from inference.cli import main; sys.exit(main(sys.argv[1:]))"
+_THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
 
 def _rss_mib(pid: int | str = "self") -> float | None:
@@ -122,10 +129,14 @@ def _summary(samples: np.ndarray, n_images: int, warmup: int, label: str) -> dic
     return result
 
 
-def run_subprocess(model: Path, images: Path, labels: Path, n_images: int, interval: float):
+def run_subprocess(
+    model: Path, images: Path, labels: Path, n_images: int, interval: float, threads=None
+):
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join([str(REPO), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
-    env.setdefault("OMP_NUM_THREADS", "1")
+    if threads is not None:
+        for name in _THREAD_VARS:
+            env[name] = str(threads)
     cmd = [sys.executable, "-c", _CLI, "-m", str(model), "-i", str(images), "-o", str(labels)]
     cmd.append("-q")
     t0 = time.perf_counter()
@@ -158,7 +169,11 @@ def run_subprocess(model: Path, images: Path, labels: Path, n_images: int, inter
     return np.asarray(samples)
 
 
-def run_inprocess(model: Path, images: Path, labels: Path, n_images: int, interval: float):
+def run_inprocess(
+    model: Path, images: Path, labels: Path, n_images: int, interval: float, threads=None
+):
+    from threadpoolctl import threadpool_limits
+
     from inference.cli import main
 
     samples, stop = [], threading.Event()
@@ -172,7 +187,8 @@ def run_inprocess(model: Path, images: Path, labels: Path, n_images: int, interv
     thread = threading.Thread(target=sample, daemon=True)
     cpu0 = time.process_time()
     thread.start()
-    code = main(["-m", str(model), "-i", str(images), "-o", str(labels), "-q"])
+    with threadpool_limits(limits=threads):
+        code = main(["-m", str(model), "-i", str(images), "-o", str(labels), "-q"])
     samples.append((time.perf_counter() - t0, _n_done(labels), _rss_mib()))
     stop.set()
     thread.join()
@@ -198,6 +214,10 @@ def main(argv=None) -> int:
     parser.add_argument("--interval", type=float, default=0.1, help="Sampling period, s.")
     parser.add_argument("--warmup", type=int, default=10, help="Images left out of the slope.")
     parser.add_argument("--seed", type=int, default=0, help="Random seed. Default: 0.")
+    parser.add_argument(
+        "--threads", type=int, default=None,
+        help="Limit the OpenMP / BLAS thread pools. Default: as the environment says.",
+    )  # fmt: skip
     args = parser.parse_args(argv)
     out = Path(args.out or tempfile.mkdtemp(prefix="medseg-batch-memory-"))
     model, images = prepare(out, args.n_images, args.size, args.seed)
@@ -208,8 +228,10 @@ def main(argv=None) -> int:
             for p in labels.iterdir():
                 p.unlink()
         run = run_subprocess if mode == "subprocess" else run_inprocess
-        samples = run(model, images, labels, args.n_images, args.interval)
-        _summary(samples, args.n_images, args.warmup, mode)
+        samples = run(model, images, labels, args.n_images, args.interval, args.threads)
+        _summary(
+            samples, args.n_images, args.warmup, f"{mode}, threads={args.threads or 'default'}"
+        )
     return 0
 
 

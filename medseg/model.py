@@ -403,9 +403,14 @@ class ShapePriorSegmenter:
             if fit_l
             else "fewer candidates per landmark"
         )
+        srmp = (
+            ", or mrf_method='mplp' (SRMP keeps 4 more copies of the tables)"
+            if self.mrf_method == "srmp"
+            else ""
+        )
         return (
             f"{lower_l}, or fewer cliques (retrain with cliques='delaunay' or 'knn' and fewer "
-            "landmarks), or mrf_method='mplp' (SRMP keeps 4 more copies of the tables)"
+            f"landmarks){srmp}"
         )
 
     def _check_mrf_memory(self, n_landmarks: int, n_cliques: int, n_lab: int, limit) -> None:
