@@ -18,17 +18,23 @@ from medseg.matching import (
     conformal_flatten,
     face_areas,
     gaussian_map_potentials,
+    geodesic_distortion_potentials,
+    intrinsic_orientation,
     invert_mobius,
+    laplacian_eigenpairs,
     match_surfaces,
     matching_energy,
     mobius_from_triplets,
     mobius_to_canonical,
+    orientation_potentials,
     prepare_surface,
     read_mesh,
     singleton_potentials,
     solve_matching,
     to_riemann_sphere,
     triplet_potentials,
+    vertex_areas,
+    wave_kernel_signature,
     write_mesh,
 )
 from medseg.matching._geometry import _corner_angles
@@ -260,6 +266,73 @@ def test_gaussian_map_term_rejects_mirror_flips(bumpy_pair):
     assert mirror.mean() > 0.5
 
 
+def test_wave_kernel_signature_is_a_normalised_spectral_density():
+    v, f = check_mesh(*_bumpy(2))
+    evals, evecs = laplacian_eigenpairs(v, f, n_eigen=40)
+    wks = wave_kernel_signature(evals, evecs, n_energies=30)
+    assert wks.shape == (len(v), 30) and np.all(wks > 0)
+    # mass-orthonormal eigenvectors: each column integrates to exactly 1 over the surface
+    np.testing.assert_allclose(vertex_areas(v, f) @ wks, 1.0, rtol=1e-8)
+    # a fixed energy band makes signatures of a scaled copy comparable: scaling lengths by s
+    # divides eigenvalues by s^2 and squared eigenvectors by s^2
+    ev2, vec2 = laplacian_eigenpairs(3.0 * v, f, n_eigen=40)
+    band = (float(evals[1]), float(evals[-1]))
+    w1 = wave_kernel_signature(evals, evecs, n_energies=30, energy_range=band)
+    w2 = wave_kernel_signature(ev2, vec2, n_energies=30, energy_range=(band[0] / 9, band[1] / 9))
+    np.testing.assert_allclose(9.0 * w2, w1, rtol=1e-6, atol=1e-12)
+
+
+@pytest.fixture(scope="module")
+def bent_and_mirrored():
+    """Bumpy surface A, its isometric bend B (other units), and its mirror image."""
+    v, f = _bumpy(3)
+    rot = Rotation.from_euler("z", 40, degrees=True).as_matrix()
+    a = prepare_surface(v, f, n_samples=40, random_state=0)
+    b = prepare_surface(1000.0 * _bend(v, np.pi / 2) @ rot.T, f, n_samples=40, random_state=0)
+    m = prepare_surface(v * np.array([-1.0, 1.0, 1.0]), f, n_samples=2, random_state=0)
+    return a, b, m
+
+
+def test_intrinsic_orientation_survives_bending_and_flips_in_a_mirror(bent_and_mirrored):
+    a, b, m = bent_and_mirrored
+    s = a.samples  # same connectivity: vertex i of A is vertex i of B and of the mirror
+    logs = [np.stack([x.geodesic.log_map(i)[s] for i in s]) for x in (a, b, m)]
+    tri = np.random.RandomState(0).rand(400, len(s)).argsort(axis=1)[:, :3]
+    oa, ob, om = (intrinsic_orientation(lm, tri) for lm in logs)
+    trusted = (oa != 0) & (ob != 0)
+    assert trusted.mean() > 0.4  # most triangles of nearby or spread points get a sign
+    assert np.mean(oa[trusted] == ob[trusted]) > 0.9
+    mirrored = (oa != 0) & (om != 0)
+    assert np.mean(oa[mirrored] == om[mirrored]) < 0.1
+    # as a potential: the bend costs (almost) nothing, the mirror is rejected
+    assert orientation_potentials(logs[0], logs[1], tri, tri[:, None]).mean() < 0.05
+    assert orientation_potentials(logs[0], logs[2], tri, tri[:, None]).mean() > 0.35
+
+
+def test_geodesic_distortion_is_small_for_an_isometry_and_large_otherwise(bent_and_mirrored):
+    a, b, _ = bent_and_mirrored
+    s = a.samples
+    da = np.stack([a.geodesic.distance(i)[s] for i in s])
+    db = np.stack([b.geodesic.distance(i)[s] for i in s])
+    rng = np.random.RandomState(1)
+    tri = rng.rand(300, len(s)).argsort(axis=1)[:, :3]
+    labels = np.stack([tri, rng.rand(300, len(s)).argsort(axis=1)[:, :3]], axis=1)
+    cost = geodesic_distortion_potentials(da, db, tri, labels)
+    assert cost.shape == (300, 2) and np.all(cost >= 0) and np.all(cost <= 27.0)
+    # B is in other units, but both are unit-area inside: the true labels cost little
+    assert np.median(cost[:, 0]) < 1.0
+    assert np.median(cost[:, 1]) > 10 * np.median(cost[:, 0])
+    np.testing.assert_allclose(geodesic_distortion_potentials(da, da, tri, tri[:, None]), 0.0)
+
+
+def test_matcher_rejects_unknown_options():
+    v, f = _sphere(1)
+    with pytest.raises(ProblemDefinitionError, match="orientation"):
+        match_surfaces(v, f, v, f, orientation="embedding")
+    with pytest.raises(ProblemDefinitionError, match="n_neighbours"):
+        match_surfaces(v, f, v, f, n_neighbours=1)
+
+
 # --- solver ---------------------------------------------------------------------------------
 
 
@@ -309,7 +382,7 @@ def test_matcher_recovers_isometric_bend():
     v, f = _bumpy(3)
     bent = _bend(v, np.pi / 2)
     rot = Rotation.from_euler("z", 40, degrees=True).as_matrix()
-    bent = bent @ rot.T
+    bent = 1000.0 * bent @ rot.T  # and B in other units (m -> mm): scaled to unit area inside
     perm = np.random.RandomState(0).permutation(len(v))
     inv = np.argsort(perm)
     res = match_surfaces(
@@ -317,7 +390,7 @@ def test_matcher_recovers_isometric_bend():
         f,
         bent[perm],
         inv[f],
-        n_sparse=20,
+        n_sparse=30,
         n_sparse_targets=80,
         n_triplets=60,
         n_align=80,
@@ -346,7 +419,7 @@ def test_cli_writes_one_index_per_vertex(tmp_path, capsys):
     write_mesh(tmp_path / "b.vtk", v @ rot.T, f)
     out, inv = tmp_path / "map.txt", tmp_path / "inv.txt"
     argv = [str(tmp_path / "a.stl"), str(tmp_path / "b.vtk"), "-o", str(out)]
-    assert main(argv + ["--inverse", str(inv), "--n-sparse", "8", "-q"]) == 0
+    assert main(argv + ["--inverse", str(inv), "--n-sparse", "6", "--n-targets", "12", "-q"]) == 0
     va, _ = read_mesh(tmp_path / "a.stl")
     fwd = np.loadtxt(out, dtype=int)
     assert fwd.shape == (len(va),) and fwd.min() >= 0 and fwd.max() < len(v)
