@@ -18,9 +18,11 @@ even 0.1 MiB per image shows as a slope of 0.1 over 100 images; a flat run has |
 few hundredths. Wall and CPU time are reported too (the machine is shared).
 
 ``--threads 1`` limits the OpenMP / BLAS pools (subprocess: ``OMP_NUM_THREADS`` and friends;
-in-process: threadpoolctl). With several pool threads glibc gives each thread its own malloc
-arena, and the RSS creeps up over the first hundred images while the arenas fill; with one
-thread it is flat from the second image on. Compare both before calling a rise a leak.
+in-process: threadpoolctl). With OpenBLAS's default pool (one thread per core) the RSS
+creeps up by about 25 MiB over the first hundred 64^3 images, ever more slowly, as the pool
+threads' work buffers get touched (measured 2026-11-23: limiting only the BLAS pool to one
+thread makes it flat, while ``MALLOC_ARENA_MAX=1`` does not); with one thread it is flat
+from the second image on. Compare both before calling a rise a leak.
 
 Usage::
 
@@ -103,8 +105,10 @@ def prepare(out: Path, n_images: int, size: int, seed: int) -> tuple[Path, Path]
 def _summary(samples: np.ndarray, n_images: int, warmup: int, label: str) -> dict:
     """samples: (S, 3) array of (seconds, images done, RSS MiB)."""
     t, done, rss = samples.T
-    # per image: the RSS when it was the last one done (one value per image count)
-    per_image = np.array([rss[done == k][-1] for k in range(1, n_images + 1) if (done == k).any()])
+    # per image: the median RSS while it was the last one done (one value per image count)
+    per_image = np.array(
+        [np.median(rss[done == k]) for k in range(1, n_images + 1) if (done == k).any()]
+    )
     counts = np.array([k for k in range(1, n_images + 1) if (done == k).any()])
     keep = counts > warmup
     slope = float(np.polyfit(counts[keep], per_image[keep], 1)[0]) if keep.sum() > 2 else np.nan
