@@ -247,6 +247,22 @@ def test_potentials_invariant_to_rigid_motion_and_scale(bumpy_pair):
     # the true labels cost (almost) nothing, random ones cost more
     assert np.median(moved[:, 0]) < 0.05
     assert np.median(moved[:, 1:]) > 10 * max(np.median(moved[:, 0]), 1e-3)
+    # the sparse stage's intrinsic terms: same costs on the moved, rescaled copy
+    s = a.samples[:30]
+    sub_trip = rng.rand(50, 30).argsort(axis=1)[:, :3]
+    sub_labels = rng.rand(50, 4, 30).argsort(axis=2)[..., :3]
+    sub_labels[:, 0] = sub_trip
+    logs = [np.stack([x.geodesic.log_map(i)[s] for i in s]) for x in (a, b)]
+    dist = [np.stack([x.geodesic.distance(i)[s] for i in s]) for x in (a, b)]
+    np.testing.assert_array_equal(
+        orientation_potentials(logs[0], logs[1], sub_trip, sub_labels),
+        orientation_potentials(logs[0], logs[0], sub_trip, sub_labels),
+    )
+    np.testing.assert_allclose(
+        geodesic_distortion_potentials(dist[0], dist[1], sub_trip, sub_labels),
+        geodesic_distortion_potentials(dist[0], dist[0], sub_trip, sub_labels),
+        atol=1e-6,
+    )
 
 
 def test_gaussian_map_term_rejects_mirror_flips(bumpy_pair):
