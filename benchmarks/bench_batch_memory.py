@@ -11,9 +11,10 @@ does (``inference.cli.main``), measuring the resident set size (VmRSS from
 * ``inprocess``: the CLI runs in this process (what a notebook or a script calling
   ``main([...])`` sees) while a thread samples this process's VmRSS.
 
-Reported: RSS at start (model loaded and the first image done), peak, end (after the last
-image), and the trend as a least-squares slope in MiB per image over the images after
-the first ``--warmup`` (allocator pools and caches fill during the first images). A leak of
+Reported: RSS at start (model loaded, the first image done: median while the second runs),
+peak, end (median while the last image runs; the exit is left out), and the trend as a
+least-squares slope in MiB per image over the images after the first ``--warmup``
+(allocator pools and caches fill during the first images). A leak of
 even 0.1 MiB per image shows as a slope of 0.1 over 100 images; a flat run has |slope| of a
 few hundredths. Wall and CPU time are reported too (the machine is shared).
 
@@ -105,11 +106,10 @@ def prepare(out: Path, n_images: int, size: int, seed: int) -> tuple[Path, Path]
 def _summary(samples: np.ndarray, n_images: int, warmup: int, label: str) -> dict:
     """samples: (S, 3) array of (seconds, images done, RSS MiB)."""
     t, done, rss = samples.T
-    # per image: the median RSS while it was the last one done (one value per image count)
-    per_image = np.array(
-        [np.median(rss[done == k]) for k in range(1, n_images + 1) if (done == k).any()]
-    )
-    counts = np.array([k for k in range(1, n_images + 1) if (done == k).any()])
+    # per image count k < n: the median RSS while image k + 1 runs (k done); the samples
+    # with all n done are the exit (teardown), left out
+    counts = np.array([k for k in range(1, n_images) if (done == k).any()])
+    per_image = np.array([np.median(rss[done == k]) for k in counts])
     keep = counts > warmup
     slope = float(np.polyfit(counts[keep], per_image[keep], 1)[0]) if keep.sum() > 2 else np.nan
     end = per_image[-1] if len(per_image) else rss[-1]
@@ -122,14 +122,15 @@ def _summary(samples: np.ndarray, n_images: int, warmup: int, label: str) -> dic
         "after_warmup_min_max": (float(per_image[keep].min()), float(per_image[keep].max())),
     }
     print(
-        f"{label}: RSS start (model loaded, first image done) {result['start_mib']:.1f} MiB, "
+        f"{label}: RSS start (model loaded, image 2 running) {result['start_mib']:.1f} MiB, "
         f"peak {result['peak_mib']:.1f} MiB, "
-        f"end {result['end_mib']:.1f} MiB; slope over images {warmup + 1}..{n_images}: "
+        f"end (image {n_images} running) {result['end_mib']:.1f} MiB; "
+        f"slope over images {warmup + 1}..{n_images}: "
         f"{slope:+.3f} MiB/image (RSS range after warm-up "
         f"{result['after_warmup_min_max'][0]:.1f}..{result['after_warmup_min_max'][1]:.1f} MiB)"
     )
     deciles = [per_image[min(len(per_image) - 1, k)] for k in range(0, len(per_image), 10)]
-    print(f"{label}: RSS after images 1, 11, 21, ...: " + ", ".join(f"{v:.0f}" for v in deciles))
+    print(f"{label}: RSS with 1, 11, 21, ... done: " + ", ".join(f"{v:.0f}" for v in deciles))
     return result
 
 
