@@ -92,6 +92,7 @@ def fitted(blobs, small_settings):
         n_estimators=12,
         n_negative=150,
         n_mining_pool=4000,
+        auto_context=True,
         random_state=0,
         n_jobs=2,
     )
@@ -269,7 +270,6 @@ def test_multiclass_mode(blobs, small_settings):
     det = LandmarkDetector(
         features=small_settings,
         mode="multiclass",
-        auto_context=False,
         n_estimators=12,
         n_negative=150,
         n_mining_pool=4000,

@@ -95,8 +95,8 @@ class LandmarkDetector:
         features, then the final forests on the local features plus spherical-shell means of
         the stage-1 probability of ``context_groups`` groups of landmarks. The stage-1 maps
         of the training images come from forests fitted without them (``context_folds``-fold
-        cross-fitting), so stage 2 learns from maps as noisy as at test time. About three
-        times the training time and twice the prediction time of one stage.
+        cross-fitting). About three times the training time and twice the prediction time
+        of one stage. Off by default: its gain is not established (see the module notes).
     context_groups : int
         Landmarks are grouped by position (k-means on the mean training shape) into this
         many context channels per radius.
@@ -148,7 +148,7 @@ class LandmarkDetector:
         region_radius_mm: float | None = 6.0,
         region_threshold: float = 0.2,
         forest: str = "random_forest",
-        auto_context: bool = True,
+        auto_context: bool = False,
         context_groups: int = 8,
         context_folds: int = 2,
         random_state=None,
@@ -291,8 +291,6 @@ class LandmarkDetector:
         self.context_radii_mm_ = None
         if self.auto_context:
             features_of = self._fit_stage1(images, landmarks, rng)
-            # the cascade's region forest on the local features serves both stages
-            region_forest = self.stage1_.region_forest_
         else:
 
             def features_of(k, image):
@@ -331,7 +329,9 @@ class LandmarkDetector:
         else:
             held_out = {}
             for f in range(n_folds):
-                det = stage(np.flatnonzero(fold_of != f), self.stage1_.region_forest_)
+                # its own cascade too: a region forest that saw the held-out image would
+                # make its training maps cleaner than any map at test time
+                det = stage(np.flatnonzero(fold_of != f))
                 held_out.update({int(k): det for k in np.flatnonzero(fold_of == f)})
 
         def features_of(k, image):
