@@ -33,6 +33,7 @@ from medseg.errors import (
     MedsegError,
     ModelFileError,
     NotFittedError,
+    ResourceLimitError,
 )
 from medseg.io import physical_to_voxel, voxel_to_physical
 
@@ -410,6 +411,14 @@ def test_bad_input_errors(fitted, blobs, small_settings):
         LandmarkDetector(features=small_settings).fit(
             [blobs[0][0], blobs[1][0]], [blobs[0][1], blobs[1][1][:3]]
         )
+
+
+def test_feature_maps_above_the_memory_limit_are_refused(fitted, blobs, monkeypatch):
+    monkeypatch.setenv("MEDSEG_MEMORY_LIMIT_GB", "0.001")  # 1 MiB
+    with pytest.raises(ResourceLimitError, match="feature maps of a .* image"):
+        fitted.candidates(blobs[7][0])
+    with pytest.raises(ResourceLimitError, match="crop the image"):
+        LandmarkDetector(n_estimators=2).fit([blobs[0][0]], [blobs[0][1]])
 
 
 def test_candidate_set_recall_counts_hits():

@@ -12,6 +12,7 @@ from sklearn.utils import check_random_state
 from tqdm.auto import tqdm
 
 from medseg._cli import show_progress
+from medseg._resources import check_memory, feature_map_bytes
 from medseg.detection._candidates import CandidateSet, non_maximum_suppression, subvoxel_peak
 from medseg.detection._context import (
     context_features,
@@ -376,6 +377,7 @@ class LandmarkDetector:
         ]
         for k, image, pts, factor in tqdm(jobs, desc="features", disable=not progress):
             image, pts = _scaled(image, pts, factor)
+            self._check_feature_memory(image, image.GetSize()[::-1])
             feats = features_of(k, image)
             flat = feats.reshape(-1, feats.shape[-1])
             samples = sample_landmark_voxels(
@@ -518,6 +520,14 @@ class LandmarkDetector:
         return [np.concatenate(m) if m else np.empty((0, width), np.float32) for m in mined]
 
     # ------------------------------------------------------------------ predict
+    def _check_feature_memory(self, image: sitk.Image, shape) -> None:
+        """Refuse feature maps above the memory limit before allocating them."""
+        check_memory(
+            feature_map_bytes(shape, spacing=image.GetSpacing()[::-1], settings=self.features),
+            what=f"feature maps of a {'x'.join(str(n) for n in image.GetSize())} image",
+            hint="crop the image around the structure, or resample it to a coarser spacing",
+        )
+
     def _check_fitted(self) -> None:
         if not hasattr(self, "forests_"):
             raise NotFittedError(
@@ -542,6 +552,7 @@ class LandmarkDetector:
         """Every feature of the forests: the local ones (or ``precomputed``), and the context."""
         shape = self._check_image(image)
         if precomputed is None:
+            self._check_feature_memory(image, shape)
             feats = compute_features(image, self.features)
         else:
             feats = np.asarray(precomputed)
