@@ -235,7 +235,7 @@ class ShapePriorSegmenter:
         for case in tqdm(cohort, desc="reading cases", disable=not progress):
             image = case.load_image()
             images.append(image)
-            masks.append(select_labels(case.load_label(), self.labels))
+            masks.append(select_labels(case.load_label(), self.labels, name=str(case.label)))
         timings["read"] = time.perf_counter() - t0
 
         t0 = time.perf_counter()

@@ -349,11 +349,6 @@ def test_labels_the_cohort_does_not_have(tiny, tmp_path, capfd):
     _no_output(tmp_path, "m")
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="model.fit calls select_labels(case.load_label(), ...) without the file name "
-    "(medseg/model.py, not owned here): the message does not say which label map",
-)
 def test_train_label_error_names_the_label_file(tiny, tmp_path, capfd):
     code = train_main([str(tiny[1]), "-o", str(tmp_path / "m"), "--label", "3", "-q"])
     line = _one_line_error(capfd, "medseg-train")
