@@ -36,6 +36,7 @@ __all__ = ["LandmarkDetector"]
 
 _MODES = ("per_landmark", "multiclass")
 _DEFAULT_FEATURES = FeatureSettings()  # frozen, so sharing it as a default is safe
+_MAX_POOL_TOTAL = 400_000  # random voxels over all training images, for mining and the cascade
 _CONTEXT_STRIDE = 2  # stage-1 maps for the context features: every other voxel per axis
 
 
@@ -77,7 +78,8 @@ class LandmarkDetector:
         voxels away from each landmark in a random pool of every training image are added as
         negatives and the forests refitted. 0 disables it.
     n_mining_pool : int
-        Random voxels per training image scored in each mining round.
+        Random voxels per training image scored in each mining round (and training the
+        cascade); at most 400 000 over all training images.
     augment_scales : tuple of float
         Extra copies of every training image, scaled about the world origin by these factors
         (only the spacing and origin change, so no resampling): the forests see the anatomy
@@ -368,8 +370,11 @@ class LandmarkDetector:
         pools = []  # (features, positions mm) of random voxels per image, for mining
         use_region = self.region_radius_mm is not None
         n_pool = int(self.n_mining_pool) if (int(self.n_mining_rounds) > 0 or use_region) else 0
-        progress = self.verbose and show_progress()
         scales = (1.0,) + tuple(float(v) for v in self.augment_scales)
+        # Every pool voxel is scored by every landmark's forest when mining: with many images
+        # (hippocampus, 48 cases x 20000 voxels x 66 forests) that dominated the training.
+        n_pool = min(n_pool, _MAX_POOL_TOTAL // max(1, len(images) * len(scales)))
+        progress = self.verbose and show_progress()
         jobs = [
             (k, image, pts, s)
             for k, (image, pts) in enumerate(zip(images, landmarks, strict=True))
