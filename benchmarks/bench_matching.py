@@ -198,8 +198,8 @@ def summarise(args: argparse.Namespace) -> None:
         if not s:
             continue
         curve = np.mean([x["direct_curve"] for x in s], axis=0)
-        cpu = [x.get("cpu_seconds") for x in s]
-        cpu = np.nanmean([np.nan if c is None else c for c in cpu])
+        cpu = np.array([np.nan if x.get("cpu_seconds") is None else x["cpu_seconds"] for x in s])
+        cpu = np.nanmean(cpu) if np.isfinite(cpu).any() else np.nan
         print(
             f"{set_name}  {method}  {len(s)}  {np.mean([x['direct_mean'] for x in s]):.4f}  "
             f"{np.mean([x['sym_mean'] for x in s]):.4f}  "
