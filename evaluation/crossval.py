@@ -165,7 +165,8 @@ def check_cohort(
     if missing:
         raise LabelError(
             f"label(s) {missing} occur in no case of cohort {name!r}; labels present: "
-            f"{sorted(v for v in found if v)}; choose them with --labels"
+            f"{sorted(v for v in found if v)}; choose them with labels= "
+            "(--label on the command line)"
         )
     if without:
         raise LabelError(
