@@ -336,6 +336,23 @@ def test_scale_augmentation_and_mining_add_samples(blobs, small_settings):
     assert np.all(aug.n_samples_[:, 0] == 2 * plain.n_samples_[:, 0] + 4 * 30)
 
 
+def test_trees_grow_on_at_most_max_tree_samples_rows(blobs, small_settings):
+    images, lms = [b[0] for b in blobs[:2]], [b[1] for b in blobs[:2]]
+    kwargs = dict(features=small_settings, n_estimators=3, n_negative=60, n_mining_pool=2000)
+    capped = LandmarkDetector(max_tree_samples=40, random_state=0, **kwargs).fit(images, lms)
+    full = LandmarkDetector(max_tree_samples=None, random_state=0, **kwargs).fit(images, lms)
+    n_rows = capped.n_samples_.sum(axis=1)
+    assert np.all(n_rows > 100)  # so the cap binds
+    for forest in capped.forests_:
+        # a bootstrap of 40 draws holds at most 40 distinct rows
+        assert all(tree.tree_.n_node_samples[0] <= 40 for tree in forest.estimators_)
+    assert all(t.tree_.n_node_samples[0] <= 40 for t in capped.region_forest_.estimators_)
+    for forest in full.forests_:
+        assert all(tree.tree_.n_node_samples[0] > 40 for tree in forest.estimators_)
+    with pytest.raises(MedsegError, match="max_tree_samples"):
+        LandmarkDetector(max_tree_samples=0, **kwargs).fit(images, lms)
+
+
 def test_same_seed_same_candidates(blobs, small_settings):
     kwargs = dict(
         features=small_settings, n_estimators=4, n_negative=60, n_mining_pool=2000, random_state=3

@@ -65,6 +65,12 @@ class LandmarkDetector:
         Voxels within this distance of a landmark are its positive samples.
     n_estimators, max_depth, min_samples_leaf, max_features
         Passed to each :class:`sklearn.ensemble.RandomForestClassifier`.
+    max_tree_samples : int or None
+        Each tree of a random forest is grown on a bootstrap sample of at most this many
+        rows (scikit-learn's ``max_samples``), so training time stops growing with the
+        number of training images once the samples of a landmark exceed it (about 36
+        images at the default). None: bootstrap samples as large as the training set.
+        Ignored by ``forest="extra_trees"``, which does not bootstrap.
     mode : {"per_landmark", "multiclass"}
         One binary forest per landmark, as in the paper, or a single forest with a class per
         landmark plus background.
@@ -142,6 +148,7 @@ class LandmarkDetector:
         max_depth: int | None = 14,
         min_samples_leaf: int = 2,
         max_features: str | int | float = "sqrt",
+        max_tree_samples: int | None = 20000,
         mode: str = "per_landmark",
         n_negative: int = 300,
         max_positive: int = 100,
@@ -164,6 +171,7 @@ class LandmarkDetector:
         self.max_depth = max_depth
         self.min_samples_leaf = min_samples_leaf
         self.max_features = max_features
+        self.max_tree_samples = max_tree_samples
         self.mode = mode
         self.n_negative = n_negative
         self.max_positive = max_positive
@@ -185,8 +193,8 @@ class LandmarkDetector:
         """Constructor arguments, as in scikit-learn."""
         names = (
             "features positive_radius_mm n_estimators max_depth min_samples_leaf max_features "
-            "mode n_negative max_positive n_mining_rounds n_mining_pool augment_scales "
-            "region_radius_mm region_threshold "
+            "max_tree_samples mode n_negative max_positive n_mining_rounds n_mining_pool "
+            "augment_scales region_radius_mm region_threshold "
             "forest auto_context context_groups context_folds random_state n_jobs verbose"
         ).split()
         return {n: getattr(self, n) for n in names}
@@ -224,11 +232,21 @@ class LandmarkDetector:
         ):
             if int(getattr(self, name)) < 1:
                 raise MedsegError(f"`{name}` must be a positive integer, got {getattr(self, name)}")
+        if self.max_tree_samples is not None and int(self.max_tree_samples) < 1:
+            raise MedsegError(
+                f"`max_tree_samples` must be a positive integer or None, got "
+                f"{self.max_tree_samples}"
+            )
         if int(self.context_folds) < 2:
             raise MedsegError(f"`context_folds` must be at least 2, got {self.context_folds}")
 
-    def _forest(self, seed: int, *, n_classes: int):
-        cls = ExtraTreesClassifier if self.forest == "extra_trees" else RandomForestClassifier
+    def _forest(self, seed: int, *, n_rows: int):
+        if self.forest == "extra_trees":
+            extra = {}
+            cls = ExtraTreesClassifier
+        else:
+            extra = {"max_samples": self._bootstrap_size(n_rows)}
+            cls = RandomForestClassifier
         return cls(
             n_estimators=int(self.n_estimators),
             max_depth=self.max_depth,
@@ -237,7 +255,14 @@ class LandmarkDetector:
             class_weight="balanced",
             n_jobs=self.n_jobs,
             random_state=seed,
+            **extra,
         )
+
+    def _bootstrap_size(self, n_rows: int) -> int | None:
+        """Rows per tree: scikit-learn's ``max_samples`` (None: as many as there are)."""
+        if self.max_tree_samples is None or n_rows <= int(self.max_tree_samples):
+            return None
+        return int(self.max_tree_samples)
 
     # ------------------------------------------------------------------ fit
     def fit(
@@ -459,6 +484,7 @@ class LandmarkDetector:
             max_depth=12,
             min_samples_leaf=int(self.min_samples_leaf),
             class_weight="balanced",
+            max_samples=self._bootstrap_size(len(y)),
             n_jobs=self.n_jobs,
             random_state=seed,
         )
@@ -492,14 +518,14 @@ class LandmarkDetector:
             for i in tqdm(range(n_lm), desc="forests", disable=not progress):
                 X = np.concatenate([X_neg[i], X_pos[i]])
                 y = np.r_[np.zeros(len(X_neg[i]), int), np.ones(len(X_pos[i]), int)]
-                forests.append(self._forest(int(seeds[i]), n_classes=2).fit(X, y))
+                forests.append(self._forest(int(seeds[i]), n_rows=len(y)).fit(X, y))
             return forests
         X = np.concatenate(X_neg + X_pos)
         y = np.concatenate(
             [np.zeros(sum(len(x) for x in X_neg), int)]
             + [np.full(len(X_pos[i]), i + 1, int) for i in range(n_lm)]
         )
-        return [self._forest(int(seeds[-1]), n_classes=n_lm + 1).fit(X, y)]
+        return [self._forest(int(seeds[-1]), n_rows=len(y)).fit(X, y)]
 
     def _mine(self, pools) -> list[np.ndarray]:
         """Hard negatives: the best-scoring pool voxels away from each landmark (bootstrapping).
