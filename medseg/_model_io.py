@@ -7,6 +7,7 @@ Layout of a model folder::
     template.npz      template mask (with its geometry), landmarks, surface, training landmarks
     detector/         written by LandmarkDetector.save (skops + JSON)
     prior.npz         written by TripletPrior.save (NPZ with a JSON header)
+    orientation.npz   the handedness term (OrientationPrior.state); absent in version 1
 
 The folder is built in a staging sibling and swapped into place (``atomic_folder``), so a
 failed save leaves no half-written model. Loading verifies the format version and every checksum
@@ -14,9 +15,10 @@ before anything is deserialised.
 
 A model folder is untrusted input: nothing on the load path uses pickle (``allow_pickle=False``
 on every ``np.load``; skops with an explicit list of trusted types), and every archive
-(``template.npz``, ``prior.npz``, ``detector/forests.skops``) is checked from its zip directory
-and ``.npy`` headers before it is unpacked (:func:`medseg._io_archive.check_archive`): an
-oversized, forged or malformed archive is refused with a :class:`ModelFileError`.
+(``template.npz``, ``prior.npz``, ``orientation.npz``, ``detector/forests.skops``) is checked
+from its zip directory and ``.npy`` headers before it is unpacked
+(:func:`medseg._io_archive.check_archive`): an oversized, forged or malformed archive is refused
+with a :class:`ModelFileError`.
 """
 
 from __future__ import annotations
@@ -35,7 +37,9 @@ from medseg.errors import InputFileError, ModelFileError
 from medseg.io import atomic_folder
 
 FORMAT = "medseg-shape-prior-segmenter"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+#: versions this medseg reads: 1 lacks the handedness term (``orientation.npz``)
+_READABLE_VERSIONS = (1, 2)
 _PARAMS = (
     "n_landmarks",
     "labels",
@@ -44,6 +48,8 @@ _PARAMS = (
     "density",
     "invariant",
     "alpha",
+    "orientation_weight",
+    "orientation_sigma_mm",
     "landmark_noise_mm",
     "n_noise_copies",
     "n_estimators",
@@ -53,7 +59,7 @@ _PARAMS = (
     "n_jobs",
 )
 MAX_MODEL_BYTES = 2 * 1024**3
-_ARCHIVES = ("template.npz", "prior.npz", "detector/forests.skops")
+_ARCHIVES = ("template.npz", "prior.npz", "orientation.npz", "detector/forests.skops")
 _TEMPLATE_ARRAYS = ("mask", "spacing", "origin", "direction", "landmarks", "vertices", "faces",
                     "training_landmarks")  # fmt: skip
 
@@ -92,9 +98,13 @@ def save_model(model, path: Path) -> Path:
         )
         model.detector_.save(tmp / "detector")
         model.prior_.save(tmp / "prior.npz")
+        orientation = getattr(model, "orientation_", None)
+        if orientation is not None:
+            np.savez_compressed(tmp / "orientation.npz", **orientation.state())
         meta = {
             "format": FORMAT,
-            "format_version": FORMAT_VERSION,
+            # a model loaded from version 1 has no handedness term and stays version 1
+            "format_version": FORMAT_VERSION if orientation is not None else 1,
             "medseg_version": medseg.__version__,
             "params": {name: _jsonable(getattr(model, name)) for name in _PARAMS},
             "cases": list(model.cases_),
@@ -124,14 +134,15 @@ def load_model(cls, path: Path):
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:
         raise ModelFileError(f"{meta_path} does not describe a medseg segmentation model")
     version = meta.get("format_version")
-    if version != FORMAT_VERSION:
+    if version not in _READABLE_VERSIONS:
         raise ModelFileError(
             f"{path} has model format version {version!r} (written by medseg "
             f"{meta.get('medseg_version', '?')}); this medseg {medseg.__version__} reads "
-            f"version {FORMAT_VERSION}: retrain the model or install the matching medseg"
+            f"versions {', '.join(map(str, _READABLE_VERSIONS))}: retrain the model or install "
+            "the matching medseg"
         )
     _verify_checksums(path, meta.get("checksums"))
-    _check_archives(path)
+    _check_archives(path, version)
 
     params = meta.get("params")
     if not isinstance(params, dict) or not set(params) <= set(_PARAMS):
@@ -156,15 +167,36 @@ def load_model(cls, path: Path):
         raise ModelFileError(f"{template} is corrupt ({exc})") from None
     model.detector_ = LandmarkDetector.load(path / "detector")
     model.prior_ = TripletPrior.load(path / "prior.npz")
+    model.orientation_ = _load_orientation(path / "orientation.npz", version, model.prior_)
     model.cases_ = list(meta.get("cases", []))
     model.rejected_ = dict(meta.get("rejected", {}))
     return model
 
 
-def _check_archives(path: Path) -> None:
+def _load_orientation(path: Path, version: int, prior):
+    """The handedness term, or None for a version-1 model (saved before it existed)."""
+    from medseg.shape import OrientationPrior
+
+    if version == 1:
+        return None
+    if not path.is_file():
+        raise ModelFileError(f"{path} is missing; the model is incomplete")
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            orientation = OrientationPrior.from_state({name: npz[name] for name in npz.files})
+    except (ValueError, KeyError, TypeError, OSError, zipfile.BadZipFile) as exc:
+        raise ModelFileError(f"{path} is corrupt ({exc})") from None
+    if not np.array_equal(orientation.cliques_, prior.cliques_):
+        raise ModelFileError(f"{path} does not match the cliques of prior.npz")
+    return orientation
+
+
+def _check_archives(path: Path, version: int) -> None:
     """Refuse oversized, forged or malformed archives before anything is unpacked."""
     total = 0
     for name in _ARCHIVES:
+        if version == 1 and name == "orientation.npz":
+            continue
         if not (path / name).is_file():
             raise ModelFileError(f"{path} is missing {name}; the model folder is incomplete")
         total += check_archive(path / name)

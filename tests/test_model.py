@@ -101,6 +101,38 @@ def test_tampered_or_foreign_model_files_are_refused(saved, tmp_path):
         load_model(tmp_path)
 
 
+def test_version_1_model_without_the_handedness_term_still_loads(fitted, saved, cohort, tmp_path):
+    old = Path(shutil.copytree(saved, tmp_path / "v1"))
+    (old / "orientation.npz").unlink()
+    meta = json.loads((old / "model.json").read_text(encoding="utf-8"))
+    meta["format_version"] = 1
+    for name in ("orientation_weight", "orientation_sigma_mm"):
+        meta["params"].pop(name)
+    meta["checksums"].pop("orientation.npz")
+    (old / "model.json").write_text(json.dumps(meta), encoding="utf-8")
+    loaded = load_model(old)
+    assert loaded.orientation_ is None
+    image = cohort[6].load_image()
+    fitted.orientation_weight = 0.0  # the same model without the term
+    try:
+        expected = fitted.segment(image).landmarks
+    finally:
+        fitted.orientation_weight = 1.0
+    np.testing.assert_array_equal(loaded.segment(image).landmarks, expected)
+    # saved again, it stays a version-1 folder that loads
+    again = loaded.save(tmp_path / "again")
+    assert json.loads((again / "model.json").read_text(encoding="utf-8"))["format_version"] == 1
+    assert load_model(again).orientation_ is None
+    # a version-2 folder without its orientation file is incomplete
+    broken = Path(shutil.copytree(saved, tmp_path / "broken"))
+    (broken / "orientation.npz").unlink()
+    meta = json.loads((broken / "model.json").read_text(encoding="utf-8"))
+    meta["checksums"].pop("orientation.npz")
+    (broken / "model.json").write_text(json.dumps(meta), encoding="utf-8")
+    with pytest.raises(ModelFileError, match="orientation.npz"):
+        load_model(broken)
+
+
 def test_unfitted_and_too_small(cohort):
     with pytest.raises(NotFittedError):
         ShapePriorSegmenter().segment(cohort[0].load_image())

@@ -6,6 +6,7 @@ positions ``X_i`` of each landmark (Wang et al., MICCAI 2010).
 
 from medseg.detection._candidates import CandidateSet, non_maximum_suppression, subvoxel_peak
 from medseg.detection._detector import LandmarkDetector
+from medseg.detection._directions import gradient_directions
 from medseg.detection._features import FeatureSettings, compute_features, feature_names
 from medseg.detection._persistence import load_detector, save_detector
 from medseg.detection._sampling import LandmarkSamples, sample_landmark_voxels
@@ -17,6 +18,7 @@ __all__ = [
     "LandmarkSamples",
     "compute_features",
     "feature_names",
+    "gradient_directions",
     "load_detector",
     "non_maximum_suppression",
     "sample_landmark_voxels",

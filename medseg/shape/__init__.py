@@ -5,7 +5,9 @@
 * :func:`select_cliques`, :func:`clique_table_size`: which triplets, and what their potential
   tables cost in memory;
 * :class:`TripletPrior`: a density per clique, potentials ``H_c = -alpha log psi_c`` for one
-  configuration or whole candidate tables, save / load without pickle.
+  configuration or whole candidate tables, save / load without pickle;
+* :class:`OrientationPrior`, :func:`triangle_orientation`: the handedness of each clique's
+  triangle against the boundary directions, which the invariants above cannot see.
 """
 
 from medseg.shape._cliques import CliqueTableSize, clique_table_size, select_cliques
@@ -14,6 +16,7 @@ from medseg.shape._invariants import (
     relative_distances_and_size,
     triangle_angles,
 )
+from medseg.shape._orientation import OrientationPrior, triangle_orientation
 from medseg.shape._persistence import prior_from_state, prior_state
 from medseg.shape._prior import MIN_TRAINING_SHAPES, TripletPrior
 from medseg.shape._procrustes import procrustes_mean
@@ -26,6 +29,8 @@ __all__ = [
     "clique_table_size",
     "CliqueTableSize",
     "TripletPrior",
+    "OrientationPrior",
+    "triangle_orientation",
     "MIN_TRAINING_SHAPES",
     "procrustes_mean",
     "prior_state",
