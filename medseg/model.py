@@ -237,14 +237,11 @@ class ShapePriorSegmenter:
         """
         if landmark_source not in ("auto", "cohort", "labels"):
             raise ValueError("`landmark_source` must be 'auto', 'cohort' or 'labels'.")
-        for name, value in (
-            ("orientation_weight", self.orientation_weight),
-            ("orientation_sigma_mm", self.orientation_sigma_mm),
-        ):
-            if not (np.isfinite(float(value)) and float(value) >= 0):
-                raise ValueError(f"`{name}` must be a finite number >= 0; got {value!r}")
-        if not float(self.orientation_sigma_mm) > 0:
-            raise ValueError("`orientation_sigma_mm` must be > 0")
+        weight, sigma = float(self.orientation_weight), float(self.orientation_sigma_mm)
+        if not (np.isfinite(weight) and weight >= 0):
+            raise ValueError(f"`orientation_weight` must be finite and >= 0; got {weight}")
+        if not (np.isfinite(sigma) and sigma > 0):
+            raise ValueError(f"`orientation_sigma_mm` must be finite and > 0; got {sigma}")
         if len(cohort) < MIN_TRAINING_CASES:
             raise CohortError(
                 f"cohort {cohort.name!r} has {len(cohort)} cases; training needs at least "

@@ -138,6 +138,10 @@ def test_unfitted_and_too_small(cohort):
         ShapePriorSegmenter().segment(cohort[0].load_image())
     with pytest.raises(CohortError, match="at least"):
         ShapePriorSegmenter().fit(cohort[:3])
+    with pytest.raises(ValueError, match="orientation_weight"):
+        ShapePriorSegmenter(orientation_weight=-1.0).fit(cohort)
+    with pytest.raises(ValueError, match="orientation_sigma_mm"):
+        ShapePriorSegmenter(orientation_sigma_mm=0.0).fit(cohort)
 
 
 def test_cli_train_then_segment_a_folder(cohort, saved, tmp_path, capsys):
