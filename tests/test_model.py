@@ -57,6 +57,36 @@ def test_oblique_anisotropic_input_keeps_its_geometry(fitted):
     assert image_geometry(seg.label) == image_geometry(image)
 
 
+def test_inference_after_detection_assumes_no_pose(fitted, cohort):
+    """The same candidates moved with the image give the same MRF labelling: the prior, the
+    handedness term and the solver see no pose. (With detection in the loop the agreement is
+    measured by the evaluation's perturbation study, not asserted here.)"""
+    from scipy.spatial.transform import Rotation
+
+    from evaluation.perturbation import PoseChange, perturb_case
+    from medseg.detection import CandidateSet
+    from medseg.io import physical_to_voxel
+
+    image, label = cohort[7].load_image(), cohort[7].load_label()
+    rotation = Rotation.from_rotvec(np.deg2rad(35.0) * np.array([0.6, -0.3, 0.74])).as_matrix()
+    change = PoseChange(rotation=rotation, scale=1.0, angle_deg=35.0)
+    centre = np.array([1.5, -2.0, 0.5])
+    moved_image, _, _ = perturb_case(image, label, None, change, centre=centre)
+    a = fitted.segment(image)
+    cands = a.candidates
+    positions = change.apply(cands.positions.reshape(-1, 3), centre).reshape(cands.positions.shape)
+    moved = CandidateSet(
+        positions=positions,
+        probabilities=cands.probabilities,
+        voxels=physical_to_voxel(moved_image, positions.reshape(-1, 3)).reshape(positions.shape),
+        floor=cands.floor,
+        meta={},
+    )
+    b = fitted.segment(moved_image, candidates=moved)
+    np.testing.assert_array_equal(b.mrf.x, a.mrf.x)
+    np.testing.assert_allclose(b.landmarks, change.apply(a.landmarks, centre), atol=1e-9)
+
+
 def test_nibabel_in_nibabel_out(fitted, cohort):
     from medseg.io import to_nibabel
 
