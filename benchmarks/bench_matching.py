@@ -149,10 +149,17 @@ def run(args: argparse.Namespace) -> None:
             seconds["medseg-norefine"] = seconds["medseg"] - res.timings.get("refine", 0.0)
             cpu["medseg-norefine"] = np.nan
             maps["medseg"], maps["medseg-norefine"] = res.forward, res.forward_unrefined
+            # each sparse solve's own map, to study the choice among them (no extra CPU)
+            for i, solve in enumerate(res.solves):
+                maps[f"medseg-solve{i}"] = solve["forward"]
+                seconds[f"medseg-solve{i}"] = cpu[f"medseg-solve{i}"] = np.nan
             extra = {
                 "sparse_gap": res.sparse.gap,
                 "dense_gap": res.dense.gap,
                 "one_to_one": res.one_to_one_fraction,
+                "solves": [
+                    {k: v for k, v in solve.items() if k != "forward"} for solve in res.solves
+                ],
                 "timings": res.timings,
             }
         if "pyfmaps" in methods:

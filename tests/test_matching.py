@@ -24,6 +24,7 @@ from medseg.matching import (
     laplacian_eigenpairs,
     match_surfaces,
     matching_energy,
+    mirrored_fraction,
     mobius_from_triplets,
     mobius_to_canonical,
     orientation_potentials,
@@ -38,6 +39,7 @@ from medseg.matching import (
     write_mesh,
 )
 from medseg.matching._geometry import _corner_angles
+from medseg.matching._matcher import _choose_solve
 
 
 def _sphere(nsub: int = 3) -> tuple[np.ndarray, np.ndarray]:
@@ -325,6 +327,36 @@ def test_intrinsic_orientation_survives_bending_and_flips_in_a_mirror(bent_and_m
     assert orientation_potentials(logs[0], logs[2], tri, tri[:, None]).mean() > 0.35
 
 
+def test_mirrored_fraction_tells_a_mirror_from_a_bend(bent_and_mirrored):
+    a, b, m = bent_and_mirrored
+    same = np.arange(len(a.vertices))  # vertex i of A is vertex i of B and of the mirror
+    assert mirrored_fraction(a.vertices, a.faces, b.vertices, b.normals, same) < 0.02
+    assert mirrored_fraction(a.vertices, a.faces, m.vertices, m.normals, same) > 0.98
+    # a noisy but orientation-preserving map: each vertex sent to a random neighbour of its
+    # image (up to one ring) keeps most faces the right way round
+    rng = np.random.RandomState(0)
+    ring = [set() for _ in same]
+    for i, j in np.vstack([a.faces[:, [0, 1]], a.faces[:, [1, 2]], a.faces[:, [2, 0]]]):
+        ring[i].add(j)
+    noisy = np.array([j if rng.rand() < 0.8 else rng.choice(sorted(ring[j])) for j in same])
+    frac = mirrored_fraction(a.vertices, a.faces, b.vertices, b.normals, noisy)
+    assert frac < 0.3
+    assert mirrored_fraction(a.vertices, a.faces, m.vertices, m.normals, noisy) > 0.7
+    # a map without orientation: about half; all images degenerate: NaN
+    shuffled = rng.permutation(len(same))
+    assert 0.35 < mirrored_fraction(a.vertices, a.faces, b.vertices, b.normals, shuffled) < 0.65
+    assert np.isnan(mirrored_fraction(a.vertices, a.faces, b.vertices, b.normals, 0 * same))
+
+
+def test_choose_solve_rejects_mirrored_maps_even_with_better_descriptors():
+    # the mirrored map (solve 1) has the best descriptor agreement: HKS / WKS cannot see a
+    # reflection, so the choice must not go by descriptors alone
+    assert _choose_solve([0.1, 0.9, 0.2], [2.0, 1.0, 1.5], max_mirrored=0.5) == 2
+    assert _choose_solve([0.1, 0.9, 0.2], [2.0, 1.0, 1.5], max_mirrored=1.0) == 1
+    # every map mirrored (or without a triangle image): the least mirrored
+    assert _choose_solve([0.8, 0.6, np.nan], [1.0, 3.0, 0.5], max_mirrored=0.5) == 1
+
+
 def test_geodesic_distortion_is_small_for_an_isometry_and_large_otherwise(bent_and_mirrored):
     a, b, _ = bent_and_mirrored
     s = a.samples
@@ -347,6 +379,10 @@ def test_matcher_rejects_unknown_options():
         match_surfaces(v, f, v, f, orientation="embedding")
     with pytest.raises(ProblemDefinitionError, match="n_neighbours"):
         match_surfaces(v, f, v, f, n_neighbours=1)
+    with pytest.raises(ProblemDefinitionError, match="n_solves"):
+        match_surfaces(v, f, v, f, n_solves=0)
+    with pytest.raises(ProblemDefinitionError, match="max_mirrored"):
+        match_surfaces(v, f, v, f, max_mirrored=1.5)
 
 
 # --- solver ---------------------------------------------------------------------------------
@@ -421,6 +457,15 @@ def test_matcher_recovers_isometric_bend():
     assert np.mean(err) < 0.03
     assert res.forward.shape == (len(v),) and res.inverse.shape == (len(v),)
     assert res.sparse.lower_bound <= res.sparse.energy + 1e-9
+    # two solves: the second, banned from the first one's matches, gives a worse map, and
+    # the orientation-preserving map with the best descriptor agreement is returned
+    assert len(res.solves) == 2 and res.mirrored_fraction < 0.1
+    chosen = [s for s in res.solves if np.array_equal(s["forward"], res.forward)]
+    assert len(chosen) >= 1
+    assert chosen[0]["residual"] == min(s["residual"] for s in res.solves if s["mirrored"] <= 0.5)
+    other = [s for s in res.solves if not np.array_equal(s["forward"], res.forward)]
+    err_other = np.array([geo.distance(truth[i])[other[0]["forward"][i]] for i in rows]) / scale
+    assert np.mean(err_other) > 3 * np.mean(err)
 
 
 # --- command line ---------------------------------------------------------------------------

@@ -26,6 +26,7 @@ __all__ = [
     "wave_kernel_signature",
     "GeodesicSolver",
     "farthest_point_sampling",
+    "mirrored_fraction",
 ]
 
 
@@ -344,3 +345,51 @@ def farthest_point_sampling(
         idx.append(nxt)
         dist = np.minimum(dist, solver.distance(nxt))
     return np.asarray(idx, dtype=np.int64)
+
+
+def mirrored_fraction(
+    vertices_a: ArrayLike,
+    faces_a: ArrayLike,
+    vertices_b: ArrayLike,
+    normals_b: ArrayLike,
+    forward: ArrayLike,
+) -> float:
+    """Share of surface A whose image under a vertex map is mirrored on surface B.
+
+    A face ``(i, j, k)`` of A is sent to the triangle ``(T(i), T(j), T(k))`` of B's
+    vertices; the image is mirrored when its right-hand normal points against B's outward
+    normals there. An orientation-preserving map (every isometry between two outward
+    oriented surfaces that is not a reflection) mirrors few faces, its reflection almost
+    all of them.
+
+    Parameters
+    ----------
+    vertices_a : (V_A, 3) float array
+    faces_a : (F_A, 3) int array
+        Outward oriented (:func:`medseg.matching.check_mesh`).
+    vertices_b : (V_B, 3) float array
+    normals_b : (V_B, 3) float array
+        Outward unit normals of B (smoothed normals are more robust to noise).
+    forward : (V_A,) int array
+        Vertex of B matched to each vertex of A.
+
+    Returns
+    -------
+    fraction : float
+        Area of the faces of A with a mirrored image over the area of the faces whose
+        image is a triangle (three distinct vertices of B), in [0, 1]; NaN when no image
+        is.
+    """
+    va = np.asarray(vertices_a, float)
+    fa = np.asarray(faces_a)
+    vb = np.asarray(vertices_b, float)
+    nb = np.asarray(normals_b, float)
+    tri = np.asarray(forward)[fa]  # (F_A, 3) vertices of B
+    q0, q1, q2 = vb[tri[:, 0]], vb[tri[:, 1]], vb[tri[:, 2]]
+    image = np.cross(q1 - q0, q2 - q0)
+    side = np.einsum("ij,ij->i", image, nb[tri].sum(axis=1))
+    distinct = (tri[:, 0] != tri[:, 1]) & (tri[:, 1] != tri[:, 2]) & (tri[:, 2] != tri[:, 0])
+    weight = face_areas(va, fa) * distinct
+    if weight.sum() == 0:
+        return float("nan")
+    return float(weight[side < 0].sum() / weight.sum())
