@@ -480,12 +480,14 @@ def test_cli_writes_one_index_per_vertex(tmp_path, capsys):
     write_mesh(tmp_path / "b.vtk", v @ rot.T, f)
     out, inv = tmp_path / "map.txt", tmp_path / "inv.txt"
     argv = [str(tmp_path / "a.stl"), str(tmp_path / "b.vtk"), "-o", str(out)]
-    assert main(argv + ["--inverse", str(inv), "--n-sparse", "6", "--n-targets", "12", "-q"]) == 0
+    opts = ["--n-sparse", "6", "--n-targets", "12", "--n-solves", "1", "-q"]
+    assert main(argv + ["--inverse", str(inv)] + opts) == 0
     va, _ = read_mesh(tmp_path / "a.stl")
     fwd = np.loadtxt(out, dtype=int)
     assert fwd.shape == (len(va),) and fwd.min() >= 0 and fwd.max() < len(v)
     assert np.loadtxt(inv, dtype=int).shape == (len(v),)
-    assert "lower bound" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "lower bound" in printed and "1 sparse solve(s)" in printed
     # refusing to overwrite an input, and a bad mesh: one line, exit code 2, no output
     assert (
         main([str(tmp_path / "a.stl"), str(tmp_path / "b.vtk"), "-o", str(tmp_path / "a.stl")]) == 2
