@@ -153,6 +153,12 @@ def run(args: argparse.Namespace) -> None:
             for i, solve in enumerate(res.solves):
                 maps[f"medseg-solve{i}"] = solve["forward"]
                 seconds[f"medseg-solve{i}"] = cpu[f"medseg-solve{i}"] = np.nan
+            if args.save_maps:
+                (out / "maps").mkdir(exist_ok=True)
+                np.savez_compressed(
+                    out / "maps" / f"{set_name}_{a}_{b}.npz",
+                    **{name.replace("-", "_"): fwd for name, fwd in maps.items()},
+                )
             extra = {
                 "sparse_gap": res.sparse.gap,
                 "dense_gap": res.dense.gap,
@@ -233,6 +239,11 @@ def main(argv=None) -> int:
         help="summarise every pair each method scored (default: the pairs all methods scored)",
     )
     parser.add_argument("--reverse", action="store_true", help="work through the pairs backwards")
+    parser.add_argument(
+        "--save-maps",
+        action="store_true",
+        help="also save medseg's maps (each solve's) to <out>/maps/<set>_<A>_<B>.npz",
+    )
     args = parser.parse_args(argv)
     if args.summarise:
         summarise(args)
