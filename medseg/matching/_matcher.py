@@ -706,6 +706,10 @@ def match_surfaces(
     * Each Möbius vote is weighted, per vertex, by how well the same map carries the nearby
       matched sparse points (a conformal map fixed by one triplet is accurate only near it).
     * ``refine=True`` adds a ZoomOut pass; ``forward_unrefined`` keeps the map without it.
+    * ``n_solves=2`` solves the sparse stage a second time, without the first solution's
+      matches, and keeps one of the two maps (not mirrored, best descriptor agreement): on
+      bodies with a left-right symmetry the lowest sparse energy is not a reliable guide
+      (module docstring, "Mirror flips"). It doubles everything after :func:`prepare_surface`.
 
     References
     ----------
