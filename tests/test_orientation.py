@@ -143,6 +143,11 @@ def test_gradient_directions_point_into_a_bright_ball_on_an_oblique_grid():
 def test_gradient_directions_of_a_constant_image_are_zero_and_bad_input_is_refused():
     image = sitk.Image((10, 10, 10), sitk.sitkFloat32) + 5.0
     assert np.all(gradient_directions(image, np.zeros((2, 3))) == 0)
+    # a grid thinner than a Gaussian's support still gives directions (here along z only)
+    ramp = sitk.GetImageFromArray(
+        np.arange(2, dtype=np.float32)[:, None, None] * np.ones((2, 3, 3))
+    )
+    np.testing.assert_allclose(gradient_directions(ramp, [[1.0, 1.0, 0.5]]), [[0, 0, 1]])
     with pytest.raises(MedsegError, match="3D"):
         gradient_directions(sitk.Image((10, 10), sitk.sitkFloat32), np.zeros((1, 3)))
     with pytest.raises(MedsegError, match="sigma_mm"):

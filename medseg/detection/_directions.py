@@ -30,8 +30,8 @@ def gradient_directions(
     points : (M, 3) float array, mm
         Physical (x, y, z) positions; outside the image the nearest voxel's gradient is used.
     sigma_mm : float, mm
-        Standard deviation of the Gaussian derivative (SimpleITK's recursive Gaussian, in
-        physical units, so anisotropic spacing is handled).
+        Standard deviation of the Gaussian smoothing before the central differences, in mm
+        (converted per axis, so anisotropic spacing is handled).
 
     Returns
     -------
@@ -44,14 +44,21 @@ def gradient_directions(
     if not float(sigma_mm) > 0:
         raise MedsegError(f"`sigma_mm` must be > 0, got {sigma_mm}")
     pts = np.asarray(points, dtype=float).reshape(-1, 3)
-    gradient = sitk.GradientRecursiveGaussian(
-        sitk.Cast(image, sitk.sitkFloat32), sigma=float(sigma_mm), useImageDirection=True
+    spacing_zyx = np.asarray(image.GetSpacing(), dtype=float)[::-1]
+    # scipy rather than SimpleITK's recursive Gaussian, which refuses axes under 4 voxels
+    smooth = ndimage.gaussian_filter(
+        sitk.GetArrayFromImage(image).astype(np.float32),
+        sigma=float(sigma_mm) / spacing_zyx,
+        mode="nearest",
     )
-    field = sitk.GetArrayFromImage(gradient)  # (Z, Y, X, 3): physical x, y, z components
     zyx = physical_to_voxel(image, pts).T
-    out = np.stack(
-        [ndimage.map_coordinates(field[..., c], zyx, order=1, mode="nearest") for c in range(3)],
-        axis=-1,
-    ).astype(float)
+    index_gradient = np.zeros((len(pts), 3))  # d/d(index axis), per mm, in (x, y, z) order
+    for axis in range(3):
+        if smooth.shape[axis] < 2:
+            continue  # no extent along this axis: no gradient along it
+        g = np.gradient(smooth, spacing_zyx[axis], axis=axis)
+        index_gradient[:, 2 - axis] = ndimage.map_coordinates(g, zyx, order=1, mode="nearest")
+    direction = np.asarray(image.GetDirection(), dtype=float).reshape(3, 3)
+    out = index_gradient @ direction.T  # the index axes' directions in physical space
     norm = np.linalg.norm(out, axis=1, keepdims=True)
     return np.divide(out, norm, out=np.zeros_like(out), where=norm > 1e-12)
