@@ -98,7 +98,7 @@ def save_model(model, path: Path) -> Path:
         )
         model.detector_.save(tmp / "detector")
         model.prior_.save(tmp / "prior.npz")
-        orientation = getattr(model, "orientation_", None)
+        orientation = model.orientation_
         if orientation is not None:
             np.savez_compressed(tmp / "orientation.npz", **orientation.state())
         meta = {

@@ -356,7 +356,7 @@ class ShapePriorSegmenter:
             t0 = time.perf_counter()
             self._check_mrf_memory(n, len(self.prior_.cliques_), cands.positions.shape[1], limit)
             tables = self.prior_.potential_tables(cands.positions, max_table_bytes=limit)
-            orientation = getattr(self, "orientation_", None)
+            orientation = self.orientation_
             if self.orientation_weight and orientation is not None:
                 directions = gradient_directions(
                     image, cands.positions.reshape(-1, 3), sigma_mm=self.orientation_sigma_mm

@@ -45,6 +45,11 @@ def triangle_orientation(xi, xj, xk, gi, gj, gk) -> np.ndarray:
     return np.divide(dot, scale, out=np.zeros_like(dot, dtype=float), where=scale > 1e-12)
 
 
+def _cost(cos, reference, penalty):
+    """``(1 - r cos) / 2`` of the penalty: 0 facing the learned way, all of it facing away."""
+    return 0.5 * (1.0 - reference * cos) * penalty
+
+
 class OrientationPrior:
     """Per-clique handedness of the landmark triangles against the boundary directions.
 
@@ -133,7 +138,7 @@ class OrientationPrior:
             pts[..., i, :], pts[..., j, :], pts[..., k, :],
             dirs[..., i, :], dirs[..., j, :], dirs[..., k, :],
         )  # fmt: skip
-        return 0.5 * (1.0 - self.reference_ * cos) * self.penalty_
+        return _cost(cos, self.reference_, self.penalty_)
 
     def tables(
         self, candidates: ArrayLike, directions: ArrayLike, *, chunk_size: int = 16
@@ -174,8 +179,9 @@ class OrientationPrior:
                 cand[i][:, :, None, None], cand[j][:, None, :, None], cand[k][:, None, None, :],
                 dirs[i][:, :, None, None], dirs[j][:, None, :, None], dirs[k][:, None, None, :],
             )  # fmt: skip
-            ref = self.reference_[sl][:, None, None, None]
-            out[sl] = 0.5 * (1.0 - ref * cos) * penalty[sl][:, None, None, None]
+            out[sl] = _cost(
+                cos, self.reference_[sl, None, None, None], penalty[sl, None, None, None]
+            )
         return out
 
     # ------------------------------------------------------------------ persistence
