@@ -68,7 +68,7 @@ def default_methods(
     names : iterable of {"shape_prior", "detection", "asm"}
         "shape_prior" is :class:`medseg.model.ShapePriorSegmenter`; "detection" the same
         fitted model with ``use_prior=False`` (each landmark at its best candidate, same
-        TPS); "asm" the active shape model of :mod:`evaluation.baselines.asm`.
+        TPS); "asm" the active shape model baseline of :mod:`evaluation.baselines.asm`.
     labels : sequence of int
         Labels forming the structure (their union).
     n_landmarks : int or None
@@ -95,11 +95,11 @@ def default_methods(
         params.update(segmenter_params or {})
         specs.append(MethodSpec(ShapePriorSegmenter, params, seg_variants))
     if "asm" in names:
-        from evaluation.baselines import ActiveShapeModel
+        from evaluation.baselines import ASMBaseline
 
         params = {"labels": tuple(labels)}
         params.update(asm_params or {})
-        specs.append(MethodSpec(ActiveShapeModel, params, {"asm": {}}))
+        specs.append(MethodSpec(ASMBaseline, params, {"asm": {}}))
     return tuple(specs)
 
 

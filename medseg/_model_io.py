@@ -7,7 +7,9 @@ Layout of a model folder::
     template.npz      template mask (with its geometry), landmarks, surface, training landmarks
     detector/         written by LandmarkDetector.save (skops + JSON)
     prior.npz         written by TripletPrior.save (NPZ with a JSON header)
-    orientation.npz   the handedness term (OrientationPrior.state); absent in version 1
+    orientation.npz   the handedness term (OrientationPrior.state); since version 2
+    shape_model.npz   the active shape model refining the landmarks (ActiveShapeModel.state);
+                      since version 3
 
 The folder is built in a staging sibling and swapped into place (``atomic_folder``), so a
 failed save leaves no half-written model. Loading verifies the format version and every checksum
@@ -15,7 +17,8 @@ before anything is deserialised.
 
 A model folder is untrusted input: nothing on the load path uses pickle (``allow_pickle=False``
 on every ``np.load``; skops with an explicit list of trusted types), and every archive
-(``template.npz``, ``prior.npz``, ``orientation.npz``, ``detector/forests.skops``) is checked
+(``template.npz``, ``prior.npz``, ``orientation.npz``, ``shape_model.npz``,
+``detector/forests.skops``) is checked
 from its zip directory and ``.npy`` headers before it is unpacked
 (:func:`medseg._io_archive.check_archive`): an oversized, forged or malformed archive is refused
 with a :class:`ModelFileError`.
@@ -37,9 +40,12 @@ from medseg.errors import InputFileError, ModelFileError
 from medseg.io import atomic_folder
 
 FORMAT = "medseg-shape-prior-segmenter"
-FORMAT_VERSION = 2
-#: versions this medseg reads: 1 lacks the handedness term (``orientation.npz``)
-_READABLE_VERSIONS = (1, 2)
+FORMAT_VERSION = 3
+#: versions this medseg reads: 1 lacks the handedness term (``orientation.npz``), 1 and 2
+#: the landmark refinement (``shape_model.npz`` and the ``refine_levels`` parameter)
+_READABLE_VERSIONS = (1, 2, 3)
+#: format version that introduced an optional file or parameter
+_SINCE = {"orientation.npz": 2, "shape_model.npz": 3, "refine_levels": 3}
 _PARAMS = (
     "n_landmarks",
     "labels",
@@ -50,6 +56,7 @@ _PARAMS = (
     "alpha",
     "orientation_weight",
     "orientation_sigma_mm",
+    "refine_levels",
     "landmark_noise_mm",
     "n_noise_copies",
     "n_estimators",
@@ -59,7 +66,9 @@ _PARAMS = (
     "n_jobs",
 )
 MAX_MODEL_BYTES = 2 * 1024**3
-_ARCHIVES = ("template.npz", "prior.npz", "orientation.npz", "detector/forests.skops")
+_ARCHIVES = (
+    "template.npz", "prior.npz", "orientation.npz", "shape_model.npz", "detector/forests.skops",
+)  # fmt: skip
 _TEMPLATE_ARRAYS = ("mask", "spacing", "origin", "direction", "landmarks", "vertices", "faces",
                     "training_landmarks")  # fmt: skip
 
@@ -98,15 +107,23 @@ def save_model(model, path: Path) -> Path:
         )
         model.detector_.save(tmp / "detector")
         model.prior_.save(tmp / "prior.npz")
-        orientation = model.orientation_
-        if orientation is not None:
-            np.savez_compressed(tmp / "orientation.npz", **orientation.state())
+        # a model loaded from an older version lacks its newer parts and keeps its version
+        version = 1
+        if model.orientation_ is not None:
+            np.savez_compressed(tmp / "orientation.npz", **model.orientation_.state())
+            version = 2
+            if model.shape_model_ is not None:
+                np.savez_compressed(tmp / "shape_model.npz", **model.shape_model_.state())
+                version = 3
         meta = {
             "format": FORMAT,
-            # a model loaded from version 1 has no handedness term and stays version 1
-            "format_version": FORMAT_VERSION if orientation is not None else 1,
+            "format_version": version,
             "medseg_version": medseg.__version__,
-            "params": {name: _jsonable(getattr(model, name)) for name in _PARAMS},
+            "params": {
+                name: _jsonable(getattr(model, name))
+                for name in _PARAMS
+                if _SINCE.get(name, 1) <= version
+            },
             "cases": list(model.cases_),
             "rejected": dict(model.rejected_),
             "checksums": {str(p.relative_to(tmp)): _sha256(p) for p in _files(tmp)},
@@ -149,6 +166,8 @@ def load_model(cls, path: Path):
         unknown = sorted(set(params) - set(_PARAMS)) if isinstance(params, dict) else params
         raise ModelFileError(f"{meta_path}: unknown or malformed model parameters {unknown!r}")
     model = cls(**params)
+    if version < _SINCE["refine_levels"]:
+        model.refine_levels = 0  # saved before the refinement existed: the MRF's landmarks
     template = path / "template.npz"
     try:
         with np.load(template, allow_pickle=False) as npz:
@@ -168,6 +187,7 @@ def load_model(cls, path: Path):
     model.detector_ = LandmarkDetector.load(path / "detector")
     model.prior_ = TripletPrior.load(path / "prior.npz")
     model.orientation_ = _load_orientation(path / "orientation.npz", version, model.prior_)
+    model.shape_model_ = _load_shape_model(path / "shape_model.npz", version, model.landmarks_)
     model.cases_ = list(meta.get("cases", []))
     model.rejected_ = dict(meta.get("rejected", {}))
     return model
@@ -177,7 +197,7 @@ def _load_orientation(path: Path, version: int, prior):
     """The handedness term, or None for a version-1 model (saved before it existed)."""
     from medseg.shape import OrientationPrior
 
-    if version == 1:
+    if version < _SINCE["orientation.npz"]:
         return None
     if not path.is_file():
         raise ModelFileError(f"{path} is missing; the model is incomplete")
@@ -191,11 +211,29 @@ def _load_orientation(path: Path, version: int, prior):
     return orientation
 
 
+def _load_shape_model(path: Path, version: int, training_landmarks):
+    """The refining active shape model, or None before version 3 (saved before it existed)."""
+    from medseg.shape import ActiveShapeModel
+
+    if version < _SINCE["shape_model.npz"]:
+        return None
+    if not path.is_file():
+        raise ModelFileError(f"{path} is missing; the model is incomplete")
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            shape_model = ActiveShapeModel.from_state({name: npz[name] for name in npz.files})
+    except (ValueError, KeyError, TypeError, OSError, zipfile.BadZipFile) as exc:
+        raise ModelFileError(f"{path} is corrupt ({exc})") from None
+    if shape_model.mean_shape_.shape != np.shape(training_landmarks)[1:]:
+        raise ModelFileError(f"{path} does not match the landmarks of template.npz")
+    return shape_model
+
+
 def _check_archives(path: Path, version: int) -> None:
     """Refuse oversized, forged or malformed archives before anything is unpacked."""
     total = 0
     for name in _ARCHIVES:
-        if version == 1 and name == "orientation.npz":
+        if _SINCE.get(name, 1) > version:
             continue
         if not (path / name).is_file():
             raise ModelFileError(f"{path} is missing {name}; the model folder is incomplete")

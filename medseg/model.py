@@ -38,12 +38,19 @@ from medseg.detection import CandidateSet, LandmarkDetector, gradient_directions
 from medseg.errors import CohortError, NotFittedError
 from medseg.io import as_input_type, read_image, select_labels
 from medseg.mrf import DEFAULT_MAX_BYTES, MRF, SolveResult, solve
-from medseg.reconstruction import warp_mask, warp_surface
-from medseg.shape import OrientationPrior, TripletPrior, procrustes_mean, select_cliques
+from medseg.reconstruction import check_distinct_landmarks, warp_mask, warp_surface
+from medseg.shape import (
+    ActiveShapeModel,
+    OrientationPrior,
+    TripletPrior,
+    procrustes_mean,
+    select_cliques,
+)
 
 __all__ = ["ShapePriorSegmenter", "Segmentation", "load_model"]
 
 MIN_TRAINING_CASES = 5
+_SHAPE_MODEL_LEVELS = 3  # resolution levels the refining active shape model learns
 
 
 @dataclass
@@ -56,7 +63,8 @@ class Segmentation:
         Label map (uint8, 1 = structure) in the input image's geometry, of the input's type
         (SimpleITK image, or nibabel image when a nibabel image was given).
     landmarks : (N, 3) float array, mm, (x, y, z)
-        The landmarks chosen by the MRF, in the input's physical space.
+        The landmarks found (the MRF's choice refined by the active shape model, see
+        ``refine_levels``), in the input's physical space.
     surface : pyvista.PolyData
         The template surface warped onto ``landmarks`` (mm).
     candidates : CandidateSet
@@ -69,6 +77,9 @@ class Segmentation:
         costs at least; small values mark uncertain landmarks.
     timings : dict
         Seconds spent in each stage.
+    chosen : (N, 3) float array, mm
+        The candidates the MRF (or, without prior, the detectors) chose, before the
+        active-shape refinement that gives ``landmarks`` (equal to them without it).
     """
 
     label: Any
@@ -78,6 +89,7 @@ class Segmentation:
     mrf: SolveResult | None
     confidence: np.ndarray
     timings: dict = field(default_factory=dict)
+    chosen: np.ndarray | None = None
     image: sitk.Image | None = field(default=None, repr=False)
 
     def plot(self, *, axis: int = 0, index: int | None = None):
@@ -131,6 +143,12 @@ class ShapePriorSegmenter:
         symmetric structure's mirrored labelling costs the same as the right one.
     orientation_sigma_mm : float, default 1.0
         Scale (mm) of the Gaussian derivative giving the boundary directions.
+    refine_levels : int, default 2
+        Resolution levels (finest first, at most 3) of the active-shape search
+        (:class:`medseg.shape.ActiveShapeModel`) that starts from the MRF's landmarks: the
+        point distribution model is fitted to them and moved onto the boundary's grey-level
+        profiles, so the result is no longer tied to the candidates' grid and to their
+        localisation noise. 0 keeps the MRF's landmarks, as in the paper.
     landmark_noise_mm : float, default 1.5
         Standard deviation of the localisation noise of detected landmarks. The clique
         densities are fitted to training shapes jittered by this much (``n_noise_copies``
@@ -169,6 +187,9 @@ class ShapePriorSegmenter:
     prior_ : TripletPrior
     orientation_ : OrientationPrior or None
         None for a model saved before the handedness term existed (format version 1).
+    shape_model_ : ActiveShapeModel or None
+        The refining active shape model, fitted on ``landmarks_``; None for a model saved
+        before it existed (format versions 1 and 2).
     template_mask_ : SimpleITK image
         Binary mask of the template (reference) case.
     template_landmarks_ : (N, 3) float array, mm
@@ -187,6 +208,7 @@ class ShapePriorSegmenter:
         alpha: float = 1.0,
         orientation_weight: float = 1.0,
         orientation_sigma_mm: float = 1.0,
+        refine_levels: int = 2,
         landmark_noise_mm: float = 1.5,
         n_noise_copies: int = 10,
         n_estimators: int = 60,
@@ -206,6 +228,7 @@ class ShapePriorSegmenter:
         self.alpha = alpha
         self.orientation_weight = orientation_weight
         self.orientation_sigma_mm = orientation_sigma_mm
+        self.refine_levels = refine_levels
         self.landmark_noise_mm = landmark_noise_mm
         self.n_noise_copies = n_noise_copies
         self.n_estimators = n_estimators
@@ -242,6 +265,7 @@ class ShapePriorSegmenter:
             raise ValueError(f"`orientation_weight` must be finite and >= 0; got {weight}")
         if not (np.isfinite(sigma) and sigma > 0):
             raise ValueError(f"`orientation_sigma_mm` must be finite and > 0; got {sigma}")
+        self._check_refine_levels()
         if len(cohort) < MIN_TRAINING_CASES:
             raise CohortError(
                 f"cohort {cohort.name!r} has {len(cohort)} cases; training needs at least "
@@ -315,6 +339,12 @@ class ShapePriorSegmenter:
             self.landmarks_, np.stack(directions), cliques=self.prior_.cliques_
         )
         timings["prior"] = time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        self.shape_model_ = ActiveShapeModel(n_levels=_SHAPE_MODEL_LEVELS).fit(
+            self.landmarks_, kept_images
+        )
+        timings["shape_model"] = time.perf_counter() - t0
         self.fit_timings_ = timings
         return self
 
@@ -380,6 +410,15 @@ class ShapePriorSegmenter:
             choice = np.argmin(unaries, axis=1)
             confidence = _margin(unaries)
         landmarks = cands.positions[np.arange(n), choice]
+        chosen = landmarks
+        if use_prior and self.refine_levels and self.shape_model_ is not None:
+            self._check_refine_levels()
+            check_distinct_landmarks(chosen, "chosen landmarks")
+            t0 = time.perf_counter()
+            landmarks = self.shape_model_.search(
+                image, start=landmarks, levels=int(self.refine_levels)
+            ).landmarks
+            timings["refinement"] = time.perf_counter() - t0
 
         t0 = time.perf_counter()
         label = warp_mask(
@@ -402,6 +441,7 @@ class ShapePriorSegmenter:
             mrf=result,
             confidence=confidence,
             timings=timings,
+            chosen=chosen,
             image=image,
         )
 
@@ -499,6 +539,18 @@ class ShapePriorSegmenter:
         if isinstance(self.cliques, str):
             n_cliques = len(select_cliques(procrustes_mean(landmarks), method=self.cliques))
             self._check_mrf_memory(landmarks.shape[1], n_cliques, int(self.n_candidates), limit)
+
+    def _check_refine_levels(self) -> None:
+        levels = self.refine_levels
+        if (
+            isinstance(levels, bool)
+            or not isinstance(levels, (int, np.integer))
+            or not (0 <= levels <= _SHAPE_MODEL_LEVELS)
+        ):
+            raise ValueError(
+                f"`refine_levels` must be an integer from 0 to {_SHAPE_MODEL_LEVELS}; "
+                f"got {levels!r}"
+            )
 
     def _check_is_fitted(self) -> None:
         if not hasattr(self, "detector_"):

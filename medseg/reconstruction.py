@@ -27,7 +27,7 @@ from scipy.ndimage import map_coordinates
 from medseg.errors import ImageGeometryError, LabelError
 from medseg.io import physical_to_voxel, voxel_to_physical
 
-__all__ = ["ThinPlateSpline", "warp_mask", "warp_surface"]
+__all__ = ["ThinPlateSpline", "check_distinct_landmarks", "warp_mask", "warp_surface"]
 
 # In 3D the biharmonic (thin-plate) spline minimising the bending energy has the kernel
 # phi(r) = -r, which scipy calls "linear"; "thin_plate_spline" (r^2 log r) is the 2D one.
@@ -59,16 +59,8 @@ class ThinPlateSpline:
             )
         if smoothing < 0:
             raise ValueError("`smoothing` must be >= 0.")
-        _, first, counts = np.unique(source, axis=0, return_index=True, return_counts=True)
-        if smoothing == 0 and np.any(counts > 1):
-            i = int(first[np.argmax(counts > 1)])
-            j = int(np.flatnonzero(np.all(source == source[i], axis=1))[1])
-            where = tuple(source[i].round(3).tolist())
-            raise ImageGeometryError(
-                f"source landmarks {i} and {j} coincide at {where} mm; a "
-                "thin-plate spline needs distinct landmarks (detected landmarks collapse onto "
-                "one position when the image does not show the trained structure)"
-            )
+        if smoothing == 0:
+            check_distinct_landmarks(source, "source landmarks")
         # Interpolate the displacement, so the affine part and far field stay well behaved.
         try:
             self._interp = RBFInterpolator(
@@ -88,6 +80,25 @@ class ThinPlateSpline:
             block = points[start : start + chunk_size]
             out[start : start + chunk_size] = block + self._interp(block)
         return out
+
+
+def check_distinct_landmarks(points: ArrayLike, what: str = "landmarks") -> None:
+    """Raise :class:`ImageGeometryError` naming two landmarks that coincide.
+
+    Detected landmarks collapse onto one position when the image does not show the trained
+    structure; neither a thin-plate spline nor a shape fit can start from that.
+    """
+    points = np.asarray(points, dtype=float)
+    _, first, counts = np.unique(points, axis=0, return_index=True, return_counts=True)
+    if np.any(counts > 1):
+        i = int(first[np.argmax(counts > 1)])
+        j = int(np.flatnonzero(np.all(points == points[i], axis=1))[1])
+        where = tuple(points[i].round(3).tolist())
+        raise ImageGeometryError(
+            f"{what} {i} and {j} coincide at {where} mm; a thin-plate spline needs distinct "
+            "landmarks (detected landmarks collapse onto one position when the image does not "
+            "show the trained structure)"
+        )
 
 
 def warp_surface(

@@ -7,16 +7,12 @@ import pytest
 import SimpleITK as sitk
 from scipy.spatial.transform import Rotation
 
-from evaluation.baselines import (
-    ActiveShapeModel,
-    landmark_mesh,
-    point_distribution_model,
-    vertex_normals,
-)
+from evaluation.baselines import ASMBaseline
 from evaluation.metrics import dice, landmark_errors
 from medseg.datasets import Cohort, make_phantom_cohort
 from medseg.errors import CohortError, NotFittedError
 from medseg.io import select_labels, voxel_to_physical
+from medseg.shape import ActiveShapeModel, landmark_mesh, point_distribution_model, vertex_normals
 
 
 def _sphere_points(n: int) -> np.ndarray:
@@ -89,8 +85,8 @@ def phantom():
 
 def test_asm_search_moves_from_its_start_onto_the_structure(phantom):
     train, test = phantom[list(range(8))], phantom[8]
-    asm = ActiveShapeModel().fit(train)
-    assert asm.modes_.shape[1:] == (30, 3) and 1 <= len(asm.eigenvalues_) <= 7
+    asm = ASMBaseline().fit(train)
+    assert asm.model_.modes_.shape[1:] == (30, 3) and 1 <= len(asm.model_.eigenvalues_) <= 7
     # Move the structure 5.4 mm away from the image centre, where the search starts.
     shift = np.array([4.0, -3.0, 2.0])
     moved = sitk.TranslationTransform(3, (-shift).tolist())  # output -> input points
@@ -103,7 +99,7 @@ def test_asm_search_moves_from_its_start_onto_the_structure(phantom):
 
     size_zyx = np.asarray(image.GetSize(), float)[::-1]
     centre = voxel_to_physical(image, ((size_zyx - 1) / 2)[None])[0]
-    start = asm.mean_size_ * asm.mean_shape_ + centre
+    start = asm.model_.mean_size_ * asm.model_.mean_shape_ + centre
     start_error = landmark_errors(start, truth)[0].mean()
     error = landmark_errors(result.landmarks, truth)[0].mean()
     assert start_error > 5.0
@@ -112,7 +108,7 @@ def test_asm_search_moves_from_its_start_onto_the_structure(phantom):
     for attr in ("GetSize", "GetSpacing", "GetOrigin", "GetDirection"):
         assert getattr(result.label, attr)() == getattr(image, attr)()
     # Shape parameters stay within +-3 sqrt(lambda); the search is deterministic.
-    assert np.all(np.abs(result.shape_parameters) <= 3 * np.sqrt(asm.eigenvalues_) + 1e-12)
+    assert np.all(np.abs(result.shape_parameters) <= 3 * np.sqrt(asm.model_.eigenvalues_) + 1e-12)
     again = asm.segment(image)
     np.testing.assert_array_equal(again.landmarks, result.landmarks)
     assert sitk.GetArrayViewFromImage(result.label).any()
@@ -120,13 +116,52 @@ def test_asm_search_moves_from_its_start_onto_the_structure(phantom):
 
 def test_asm_bad_use(phantom):
     with pytest.raises(NotFittedError, match="fit"):
-        ActiveShapeModel().segment(phantom[0].load_image())
+        ASMBaseline().segment(phantom[0].load_image())
     without = Cohort(
         cases=[
             type(c)(c.case_id, c.subject, c.image, c.label, None) for c in phantom[list(range(4))]
         ]
     )
     with pytest.raises(CohortError, match="no landmarks"):
-        ActiveShapeModel().fit(without)
+        ASMBaseline().fit(without)
     with pytest.raises(CohortError, match="at least 3"):
-        ActiveShapeModel().fit(phantom[[0, 1]])
+        ASMBaseline().fit(phantom[[0, 1]])
+
+
+@pytest.fixture(scope="module")
+def shape_model(phantom):
+    train = phantom[list(range(8))]
+    images = [c.load_image() for c in train]
+    return ActiveShapeModel().fit(np.stack([c.load_landmarks() for c in train]), images)
+
+
+def test_search_from_a_nearby_start_moves_it_onto_the_boundary(phantom, shape_model):
+    """The segmenter's refinement: a start a few mm off (pose and noise) is pulled in."""
+    test = phantom[8]
+    truth = test.load_landmarks()
+    rng = np.random.RandomState(0)
+    rot = Rotation.from_rotvec(np.deg2rad(8.0) * np.array([0.3, 0.8, -0.5])).as_matrix()
+    centroid = truth.mean(0)
+    start = (truth - centroid) @ rot.T + centroid + [1.5, -1.0, 1.0]
+    start = start + rng.normal(scale=1.0, size=start.shape)
+    found = shape_model.search(test.load_image(), start=start, levels=2)
+    start_error = landmark_errors(start, truth)[0].mean()
+    error = landmark_errors(found.landmarks, truth)[0].mean()
+    assert start_error > 2.5
+    assert error < 0.6 * start_error
+    assert len(found.n_iter) == 2
+    with pytest.raises(ValueError, match="start"):
+        shape_model.search(test.load_image(), start=start[:-1])
+
+
+def test_active_shape_model_state_round_trip(phantom, shape_model):
+    state = shape_model.state()
+    again = ActiveShapeModel.from_state(state)
+    image = phantom[8].load_image()
+    expected = shape_model.search(image).landmarks
+    np.testing.assert_array_equal(again.search(image).landmarks, expected)
+    broken = dict(state, profile_means=state["profile_means"][:, :-1])
+    with pytest.raises(ValueError, match="inconsistent"):
+        ActiveShapeModel.from_state(broken)
+    with pytest.raises(NotFittedError):
+        ActiveShapeModel().state()

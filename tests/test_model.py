@@ -60,9 +60,9 @@ def test_oblique_anisotropic_input_keeps_its_geometry(fitted):
 
 def test_inference_after_detection_assumes_no_pose(fitted, cohort):
     """The same candidates moved with a rigidly rotated image: the triplet prior and the
-    solver give the identical labelling. Not asserted: the handedness term, which reads the
-    gradients of the resampled image (at weak-gradient candidates they move), nor detection;
-    both are measured by the evaluation's perturbation study."""
+    solver give the identical choice. Not asserted: the handedness term and the active-shape
+    refinement, which read the resampled image (its gradients and profiles move a little
+    with the interpolation), nor detection; they are measured by the perturbation study."""
     from scipy.spatial.transform import Rotation
 
     from evaluation.perturbation import PoseChange, perturb_case
@@ -88,7 +88,7 @@ def test_inference_after_detection_assumes_no_pose(fitted, cohort):
     a = plain.segment(image, candidates=cands)
     b = plain.segment(moved_image, candidates=moved)
     np.testing.assert_array_equal(b.mrf.x, a.mrf.x)
-    np.testing.assert_allclose(b.landmarks, change.apply(a.landmarks, centre), atol=1e-9)
+    np.testing.assert_allclose(b.chosen, change.apply(a.chosen, centre), atol=1e-9)
 
 
 def test_nibabel_in_nibabel_out(fitted, cohort):
@@ -135,34 +135,75 @@ def test_tampered_or_foreign_model_files_are_refused(saved, tmp_path):
         load_model(tmp_path)
 
 
-def test_version_1_model_without_the_handedness_term_still_loads(fitted, saved, cohort, tmp_path):
-    old = Path(shutil.copytree(saved, tmp_path / "v1"))
-    (old / "orientation.npz").unlink()
+def _as_older_version(saved: Path, folder: Path, version: int) -> Path:
+    """A copy of a saved model as medseg wrote it before format ``version + 1``."""
+    old = Path(shutil.copytree(saved, folder))
     meta = json.loads((old / "model.json").read_text(encoding="utf-8"))
-    meta["format_version"] = 1
-    for name in ("orientation_weight", "orientation_sigma_mm"):
+    dropped = {2: (["shape_model.npz"], ["refine_levels"])}
+    dropped[1] = (
+        dropped[2][0] + ["orientation.npz"],
+        dropped[2][1] + ["orientation_weight", "orientation_sigma_mm"],
+    )
+    files, params = dropped[version]
+    for name in files:
+        (old / name).unlink()
+        meta["checksums"].pop(name)
+    for name in params:
         meta["params"].pop(name)
-    meta["checksums"].pop("orientation.npz")
+    meta["format_version"] = version
     (old / "model.json").write_text(json.dumps(meta), encoding="utf-8")
-    loaded = load_model(old)
-    assert loaded.orientation_ is None
+    return old
+
+
+@pytest.mark.parametrize("version", [1, 2])
+def test_older_model_versions_still_load_and_run_without_their_missing_parts(
+    fitted, saved, cohort, tmp_path, version
+):
+    loaded = load_model(_as_older_version(saved, tmp_path / "old", version))
+    assert loaded.shape_model_ is None and loaded.refine_levels == 0
+    assert (loaded.orientation_ is None) == (version == 1)
     image = cohort[6].load_image()
-    plain = copy.copy(fitted)
-    plain.orientation_weight = 0.0  # the same model without the term
-    expected = plain.segment(image).landmarks
-    np.testing.assert_array_equal(loaded.segment(image).landmarks, expected)
-    # saved again, it stays a version-1 folder that loads
+    same = copy.copy(fitted)  # the same model without the parts that version lacks
+    same.refine_levels = 0
+    if version == 1:
+        same.orientation_weight = 0.0
+    np.testing.assert_array_equal(loaded.segment(image).landmarks, same.segment(image).landmarks)
+    # saved again, it keeps its version and loads
     again = loaded.save(tmp_path / "again")
-    assert json.loads((again / "model.json").read_text(encoding="utf-8"))["format_version"] == 1
-    assert load_model(again).orientation_ is None
-    # a version-2 folder without its orientation file is incomplete
+    meta = json.loads((again / "model.json").read_text(encoding="utf-8"))
+    assert meta["format_version"] == version
+    assert load_model(again).shape_model_ is None
+
+
+@pytest.mark.parametrize("name", ["orientation.npz", "shape_model.npz"])
+def test_current_model_without_one_of_its_files_is_incomplete(saved, tmp_path, name):
     broken = Path(shutil.copytree(saved, tmp_path / "broken"))
-    (broken / "orientation.npz").unlink()
+    (broken / name).unlink()
     meta = json.loads((broken / "model.json").read_text(encoding="utf-8"))
-    meta["checksums"].pop("orientation.npz")
+    meta["checksums"].pop(name)
     (broken / "model.json").write_text(json.dumps(meta), encoding="utf-8")
-    with pytest.raises(ModelFileError, match="orientation.npz"):
+    with pytest.raises(ModelFileError, match=name):
         load_model(broken)
+
+
+def test_refinement_starts_from_the_mrf_choice(fitted, cohort):
+    image = cohort[6].load_image()
+    seg = fitted.segment(image)
+    n = seg.candidates.positions.shape[0]
+    np.testing.assert_array_equal(
+        seg.chosen, seg.candidates.positions[np.arange(n), np.asarray(seg.mrf.x)]
+    )
+    expected = fitted.shape_model_.search(image, start=seg.chosen, levels=fitted.refine_levels)
+    np.testing.assert_array_equal(seg.landmarks, expected.landmarks)
+    unrefined = copy.copy(fitted)
+    unrefined.refine_levels = 0
+    np.testing.assert_array_equal(unrefined.segment(image).landmarks, seg.chosen)
+    detection = fitted.segment(image, use_prior=False)  # the baseline is not refined
+    np.testing.assert_array_equal(detection.landmarks, detection.chosen)
+    for bad in (-1, 4, 1.5, True):
+        unrefined.refine_levels = bad
+        with pytest.raises(ValueError, match="refine_levels"):
+            unrefined.segment(image)
 
 
 def test_unfitted_and_too_small(cohort):
@@ -174,6 +215,8 @@ def test_unfitted_and_too_small(cohort):
         ShapePriorSegmenter(orientation_weight=-1.0).fit(cohort)
     with pytest.raises(ValueError, match="orientation_sigma_mm"):
         ShapePriorSegmenter(orientation_sigma_mm=0.0).fit(cohort)
+    with pytest.raises(ValueError, match="refine_levels"):
+        ShapePriorSegmenter(refine_levels=5).fit(cohort)
 
 
 def test_cli_train_then_segment_a_folder(cohort, saved, tmp_path, capsys):

@@ -1,19 +1,5 @@
 """Baselines evaluated beside the shape-prior segmenter, on the same folds."""
 
-from evaluation.baselines.asm import (
-    ActiveShapeModel,
-    ASMResult,
-    PointDistributionModel,
-    landmark_mesh,
-    point_distribution_model,
-    vertex_normals,
-)
+from evaluation.baselines.asm import ASMBaseline, ASMResult
 
-__all__ = [
-    "ActiveShapeModel",
-    "ASMResult",
-    "PointDistributionModel",
-    "point_distribution_model",
-    "landmark_mesh",
-    "vertex_normals",
-]
+__all__ = ["ASMBaseline", "ASMResult"]

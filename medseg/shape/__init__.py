@@ -7,9 +7,20 @@
 * :class:`TripletPrior`: a density per clique, potentials ``H_c = -alpha log psi_c`` for one
   configuration or whole candidate tables, save / load without pickle;
 * :class:`OrientationPrior`, :func:`triangle_orientation`: the handedness of each clique's
-  triangle against the boundary directions, which the invariants above cannot see.
+  triangle against the boundary directions, which the invariants above cannot see;
+* :class:`ActiveShapeModel`, :func:`point_distribution_model`: the point distribution model
+  with grey-level profiles and its search (Cootes et al. 1995), which refines the landmarks
+  the MRF chose (and is the evaluation's baseline).
 """
 
+from medseg.shape._active_shape import (
+    ActiveShapeModel,
+    PointDistributionModel,
+    ShapeSearch,
+    landmark_mesh,
+    point_distribution_model,
+    vertex_normals,
+)
 from medseg.shape._cliques import CliqueTableSize, clique_table_size, select_cliques
 from medseg.shape._invariants import (
     relative_distances,
@@ -35,4 +46,10 @@ __all__ = [
     "procrustes_mean",
     "prior_state",
     "prior_from_state",
+    "ActiveShapeModel",
+    "ShapeSearch",
+    "PointDistributionModel",
+    "point_distribution_model",
+    "landmark_mesh",
+    "vertex_normals",
 ]

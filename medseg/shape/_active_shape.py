@@ -1,0 +1,536 @@
+"""The active shape model (Cootes, Taylor, Cooper & Graham, 1995), in 3D.
+
+Used twice: as the boundary refinement of :class:`medseg.model.ShapePriorSegmenter`
+(a search that starts from the landmarks the MRF chose) and as the standard baseline of the
+evaluation (:mod:`evaluation.baselines.asm`, a search from the image centre, as a user of
+ASM would start it).
+
+1. **Point distribution model.** The training landmark sets are aligned by generalised
+   Procrustes analysis (similarity transforms, unit centroid size, projection onto the
+   tangent space of the mean); PCA of the aligned shapes keeps the modes that explain 98 %
+   of the variance, and shape parameters are limited to +-3 sqrt(lambda).
+2. **Grey-level profile models.** A fixed triangle mesh over the landmarks (the convex hull
+   of the mean shape's landmarks projected onto a sphere around its centroid: valid for
+   star-shaped structures) gives each landmark a normal in any instance. Along that normal,
+   the image derivative is sampled at ``2k+1`` positions, normalised by the sum of its
+   absolute values; per landmark and resolution level, the mean profile and a Ledoit-Wolf
+   covariance give the Mahalanobis fit of a profile.
+3. **Multi-resolution search** over a Gaussian scale space (the image smoothed with a
+   sigma that doubles per level, the profile step doubling with it; coarse to fine). Each
+   iteration moves every landmark along its normal to the best-fitting profile position
+   among ``2(m-k)+1`` offsets, then fits pose and shape parameters to the suggested points
+   (similarity alignment, tangent projection, clamped parameters). A level ends when 90 %
+   of the landmarks moved by at most one profile step, or after ``max_iter`` iterations.
+   Every step is defined in physical space, so the search commutes with a similarity
+   transform of the image and its start.
+
+References
+----------
+T. F. Cootes, C. J. Taylor, D. H. Cooper, J. Graham, "Active shape models - their training
+and application", Computer Vision and Image Understanding 61(1), 1995.
+doi:10.1006/cviu.1995.1004
+
+T. F. Cootes, C. J. Taylor, A. Lanitis, "Active shape models: evaluation of a
+multi-resolution method for improving image search", BMVC 1994. doi:10.5244/C.8.32
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import SimpleITK as sitk
+from scipy.ndimage import gaussian_filter, map_coordinates
+from scipy.spatial import ConvexHull
+from scipy.spatial.transform import Rotation
+from sklearn.covariance import LedoitWolf
+from tqdm.auto import tqdm
+
+from medseg.errors import CohortError, NotFittedError
+from medseg.io import physical_to_voxel, voxel_to_physical
+
+__all__ = [
+    "ActiveShapeModel",
+    "ShapeSearch",
+    "PointDistributionModel",
+    "point_distribution_model",
+    "landmark_mesh",
+    "vertex_normals",
+]
+
+MIN_TRAINING_SHAPES = 3
+
+
+# ----------------------------------------------------------------------------- geometry
+
+
+def _similarity(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Least-squares ``dst ~ s R src + t`` (proper rotation): (s, R, t)."""
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    a, b = src - mu_s, dst - mu_d
+    u, sig, vt = np.linalg.svd(b.T @ a)
+    d = np.array([1.0, 1.0, np.sign(np.linalg.det(u @ vt)) or 1.0])
+    rot = (u * d) @ vt
+    var = float((a**2).sum())
+    s = float((sig * d).sum() / var) if var > 0 else 1.0
+    return s, rot, mu_d - s * mu_s @ rot.T
+
+
+def _align_all(shapes: np.ndarray, mean: np.ndarray) -> np.ndarray:
+    """Centred shapes aligned onto ``mean`` (similarity), projected onto its tangent space."""
+    out = []
+    for x in shapes:
+        s, rot, _ = _similarity(x, mean)
+        y = s * x @ rot.T
+        out.append(y / np.sum(y * mean))
+    return np.stack(out)
+
+
+def landmark_mesh(shape: np.ndarray) -> np.ndarray:
+    """Triangles over landmarks: the hull of the landmarks projected onto a sphere.
+
+    Parameters
+    ----------
+    shape : (N, 3) float array
+        A landmark configuration (the mean shape), star-shaped about its centroid.
+
+    Returns
+    -------
+    faces : (F, 3) int array
+        Oriented so that face normals point away from the centroid.
+    """
+    centred = shape - shape.mean(0)
+    unit = centred / np.maximum(np.linalg.norm(centred, axis=1, keepdims=True), 1e-12)
+    faces = ConvexHull(unit).simplices.copy()
+    a, b, c = (unit[faces[:, j]] for j in range(3))
+    flip = np.einsum("ij,ij->i", np.cross(b - a, c - a), a + b + c) < 0
+    faces[flip] = faces[flip][:, ::-1]
+    return faces
+
+
+def vertex_normals(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Area-weighted unit vertex normals, ``(N, 3)``, of a landmark mesh."""
+    a, b, c = (points[faces[:, j]] for j in range(3))
+    fn = np.cross(b - a, c - a)
+    normals = np.zeros_like(points)
+    for j in range(3):
+        np.add.at(normals, faces[:, j], fn)
+    return normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+
+
+@dataclass(frozen=True)
+class PointDistributionModel:
+    """Result of :func:`point_distribution_model`.
+
+    Attributes
+    ----------
+    mean : (N, 3) float array
+        Mean shape: centred, unit centroid size, in the mean orientation of the inputs.
+    modes : (K, N, 3) float array
+        Orthonormal modes of variation (as flattened vectors).
+    eigenvalues : (K,) float array
+        Variance along each mode (unit-size frame), descending.
+    mean_size : float
+        Mean centroid size of the input shapes (their units, mm).
+    aligned : (S, N, 3) float array
+        Input shapes after Procrustes alignment and tangent projection.
+    explained : float
+        Fraction of the total variance the K modes explain.
+    """
+
+    mean: np.ndarray
+    modes: np.ndarray
+    eigenvalues: np.ndarray
+    mean_size: float
+    aligned: np.ndarray
+    explained: float
+
+
+def point_distribution_model(
+    shapes: np.ndarray, *, variance: float = 0.98, max_iter: int = 50
+) -> PointDistributionModel:
+    """Generalised Procrustes alignment and PCA of landmark configurations.
+
+    Parameters
+    ----------
+    shapes : (S, N, 3) float array, mm
+        Landmark configurations in correspondence.
+    variance : float, default 0.98
+        Keep the fewest modes that explain at least this fraction of the variance.
+    max_iter : int, default 50
+        Procrustes iterations (the mean is re-estimated and re-aligned each time).
+
+    Returns
+    -------
+    PointDistributionModel
+        Invariant to a similarity transform of any input shape, except for the orientation
+        of the mean, which is the mean (chordal L2) rotation of the inputs.
+    """
+    shapes = np.asarray(shapes, dtype=float)
+    if shapes.ndim != 3 or shapes.shape[2] != 3 or len(shapes) < 2:
+        raise ValueError(f"`shapes` must be (S, N, 3) with S >= 2, got {shapes.shape}")
+    centred = shapes - shapes.mean(axis=1, keepdims=True)
+    sizes = np.sqrt((centred**2).sum(axis=(1, 2)))
+    unit = centred / sizes[:, None, None]
+    mean = unit[0].copy()
+    for _ in range(max_iter):
+        new = _align_all(unit, mean).mean(axis=0)
+        new /= np.linalg.norm(new)
+        new = new @ _similarity(new, mean)[1].T  # keep the mean's orientation fixed
+        converged = np.abs(new - mean).max() < 1e-10
+        mean = new
+        if converged:
+            break
+    # Unit pose = the mean orientation of the inputs: rotate the mean into it.
+    rotations = Rotation.from_matrix(np.stack([_similarity(mean, x)[1] for x in unit]))
+    mean = mean @ rotations.mean().as_matrix().T
+    aligned = _align_all(unit, mean)
+    dev = (aligned - mean).reshape(len(aligned), -1)
+    _, sv, vt = np.linalg.svd(dev, full_matrices=False)
+    eig = sv**2 / (len(aligned) - 1)
+    total = eig.sum()
+    if total > 0:
+        ratio = np.cumsum(eig) / total
+        k = min(int(np.searchsorted(ratio, variance - 1e-12) + 1), len(eig))
+        explained = float(ratio[k - 1])
+    else:
+        k, explained = 0, 1.0
+    return PointDistributionModel(
+        mean=mean,
+        modes=vt[:k].reshape(k, -1, 3),
+        eigenvalues=eig[:k],
+        mean_size=float(sizes.mean()),
+        aligned=aligned,
+        explained=explained,
+    )
+
+
+# ----------------------------------------------------------------------------- profiles
+
+
+def _smoothed(image: sitk.Image, sigma_mm: float) -> np.ndarray:
+    arr = sitk.GetArrayFromImage(image).astype(np.float32)
+    spacing_zyx = np.asarray(image.GetSpacing(), dtype=float)[::-1]
+    return gaussian_filter(arr, sigma=sigma_mm / spacing_zyx, mode="nearest")
+
+
+def _profiles(
+    image: sitk.Image,
+    array: np.ndarray,
+    points: np.ndarray,
+    normals: np.ndarray,
+    half: int,
+    step: float,
+) -> np.ndarray:
+    """Derivative profiles ``(N, 2*half+1)`` along the normals, centred on the points.
+
+    Intensities are sampled at offsets ``(j - 0.5) step`` for ``j = -half .. half+1`` and
+    differenced, so value ``j`` is the derivative at offset ``j * step`` (mm).
+    """
+    offsets = (np.arange(-half, half + 2) - 0.5) * step
+    samples = points[:, None, :] + offsets[None, :, None] * normals[:, None, :]
+    zyx = physical_to_voxel(image, samples.reshape(-1, 3))
+    values = map_coordinates(array, zyx.T, order=1, mode="nearest")
+    return np.diff(values.reshape(len(points), -1), axis=1)
+
+
+def _normalise(g: np.ndarray) -> np.ndarray:
+    return g / np.maximum(np.abs(g).sum(axis=-1, keepdims=True), 1e-9)
+
+
+# ----------------------------------------------------------------------------- model
+
+
+@dataclass(frozen=True)
+class ShapeSearch:
+    """The result of :meth:`ActiveShapeModel.search`.
+
+    Attributes
+    ----------
+    landmarks : (N, 3) float array, mm
+    shape_parameters : (K,) float array
+        Final mode weights ``b``.
+    pose : dict
+        ``scale`` (mm, centroid size), ``rotation`` (3, 3), ``translation`` (3,) mm.
+    n_iter : list of int
+        Iterations per searched level, coarse to fine.
+    """
+
+    landmarks: np.ndarray
+    shape_parameters: np.ndarray
+    pose: dict
+    n_iter: list
+
+
+_STATE_SCALARS = (
+    "variance", "limit", "profile_half", "search_half", "step_mm", "n_levels", "max_iter",
+)  # fmt: skip
+
+
+class ActiveShapeModel:
+    """Point distribution model, grey-level profile models and multi-resolution search.
+
+    Parameters
+    ----------
+    variance : float, default 0.98
+        Fraction of the shape variance the retained modes explain.
+    limit : float, default 3.0
+        Shape parameters are clamped to ``+-limit * sqrt(lambda)``.
+    profile_half : int, default 3
+        ``k``: the profile model has ``2k+1`` samples.
+    search_half : int, default 6
+        ``m > k``: the search profile has ``2m+1`` samples, i.e. ``2(m-k)+1`` offsets.
+    step_mm : float, default 1.0
+        Profile sample spacing at the finest level (doubles per coarser level).
+    n_levels : int, default 3
+        Resolution levels of the Gaussian scale space.
+    max_iter : int, default 20
+        Iterations per level.
+
+    Attributes
+    ----------
+    mean_shape_ : (N, 3) float array
+        Mean shape, unit centroid size, centred, in the mean training orientation.
+    modes_ : (K, N, 3) float array
+        Orthonormal shape modes (unit-size frame).
+    eigenvalues_ : (K,) float array
+    mean_size_ : float
+        Mean centroid size of the training shapes (mm).
+    faces_ : (F, 3) int array
+        Triangles over the landmarks used for normals.
+    closest_to_mean_ : int
+        Index of the training shape nearest the mean after alignment (a template).
+    profile_means_ : (levels, N, 2k+1) float array
+    profile_precisions_ : (levels, N, 2k+1, 2k+1) float array
+    """
+
+    _converged_shift = 1  # profile steps; a level ends when 90 % of moves are this small
+
+    def __init__(
+        self,
+        *,
+        variance: float = 0.98,
+        limit: float = 3.0,
+        profile_half: int = 3,
+        search_half: int = 6,
+        step_mm: float = 1.0,
+        n_levels: int = 3,
+        max_iter: int = 20,
+    ):
+        self.variance = variance
+        self.limit = limit
+        self.profile_half = profile_half
+        self.search_half = search_half
+        self.step_mm = step_mm
+        self.n_levels = n_levels
+        self.max_iter = max_iter
+
+    def _level_sigma_step(self, level: int) -> tuple[float, float]:
+        step = self.step_mm * 2.0**level
+        return 0.6 * step, step
+
+    # -- training ---------------------------------------------------------------------------
+
+    def fit(
+        self, shapes, images: Sequence[sitk.Image], *, progress: bool = False
+    ) -> ActiveShapeModel:
+        """Learn the point distribution model and the profile models.
+
+        Parameters
+        ----------
+        shapes : (S, N, 3) float array, mm
+            Training landmarks in correspondence, each in its own image's physical space.
+        images : sequence of S 3D SimpleITK images
+        progress : bool, default False
+        """
+        if not 0.0 < self.variance <= 1.0:
+            raise ValueError("`variance` must be in (0, 1].")
+        if self.search_half <= self.profile_half or self.profile_half < 1:
+            raise ValueError("need 1 <= `profile_half` < `search_half`.")
+        if int(self.n_levels) < 1:
+            raise ValueError(f"`n_levels` must be >= 1, got {self.n_levels}")
+        shapes = np.asarray(shapes, dtype=float)
+        if shapes.ndim != 3 or shapes.shape[2] != 3:
+            raise CohortError(f"training shapes must be (S, N, 3), got {shapes.shape}")
+        if len(shapes) < MIN_TRAINING_SHAPES:
+            raise CohortError(
+                f"the ASM needs at least {MIN_TRAINING_SHAPES} training shapes, got {len(shapes)}"
+            )
+        if len(images) != len(shapes):
+            raise CohortError(f"{len(shapes)} training shapes but {len(images)} images")
+        pdm = point_distribution_model(shapes, variance=self.variance)
+        self.mean_shape_ = pdm.mean
+        self.modes_ = pdm.modes
+        self.eigenvalues_ = pdm.eigenvalues
+        self.mean_size_ = pdm.mean_size
+        self.faces_ = landmark_mesh(pdm.mean)
+        self.closest_to_mean_ = int(np.argmin(((pdm.aligned - pdm.mean) ** 2).sum(axis=(1, 2))))
+        k = self.profile_half
+        per_level: list[list[np.ndarray]] = [[] for _ in range(self.n_levels)]
+        for i, image in enumerate(tqdm(images, desc="ASM profiles", disable=not progress)):
+            normals = vertex_normals(shapes[i], self.faces_)
+            for level in range(self.n_levels):
+                sigma, step = self._level_sigma_step(level)
+                arr = _smoothed(image, sigma)
+                per_level[level].append(
+                    _normalise(_profiles(image, arr, shapes[i], normals, k, step))
+                )
+        means, precisions = [], []
+        for level in range(self.n_levels):
+            g = np.stack(per_level[level], axis=1)  # (N, S, 2k+1)
+            means.append(g.mean(axis=1))
+            precisions.append(np.stack([LedoitWolf().fit(g_i).precision_ for g_i in g]))
+        self.profile_means_ = np.stack(means)
+        self.profile_precisions_ = np.stack(precisions)
+        return self
+
+    # -- search -----------------------------------------------------------------------------
+
+    def _check_fitted(self) -> None:
+        if not hasattr(self, "profile_means_"):
+            raise NotFittedError("this ActiveShapeModel is not fitted yet: call fit(...)")
+
+    def _instance(self, b: np.ndarray) -> np.ndarray:
+        return self.mean_shape_ + np.tensordot(b, self.modes_, axes=1)
+
+    def _fit_to_points(
+        self, y: np.ndarray, b: np.ndarray
+    ) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+        """Pose and clamped shape parameters that best explain suggested points ``y``."""
+        limits = self.limit * np.sqrt(self.eigenvalues_)
+        for _ in range(5):
+            s, rot, t = _similarity(self._instance(b), y)
+            local = ((y - t) @ rot) / s
+            local = local / np.sum(local * self.mean_shape_)
+            b_new = np.clip(
+                np.tensordot(self.modes_, local - self.mean_shape_, axes=([1, 2], [0, 1])),
+                -limits,
+                limits,
+            )
+            if np.abs(b_new - b).max(initial=0.0) < 1e-6:
+                b = b_new
+                break
+            b = b_new
+        s, rot, t = _similarity(self._instance(b), y)
+        return s, rot, t, b
+
+    def search(self, image: sitk.Image, start=None, *, levels: int | None = None) -> ShapeSearch:
+        """Fit the model to the image's boundary, from a start.
+
+        Parameters
+        ----------
+        image : 3D SimpleITK image
+        start : (N, 3) float array, mm, optional
+            Landmarks to start from: the model instance (pose and shape parameters) closest
+            to them starts the search. Default: the mean shape at the physical centre of the
+            image, with unit pose (the mean training orientation and size).
+        levels : int, optional
+            Search only the finest ``levels`` resolution levels (a good start needs no
+            coarse levels). Default: all.
+
+        Returns
+        -------
+        ShapeSearch
+        """
+        self._check_fitted()
+        b = np.zeros(len(self.eigenvalues_))
+        if start is None:
+            size_zyx = np.asarray(image.GetSize(), dtype=float)[::-1]
+            centre = voxel_to_physical(image, ((size_zyx - 1.0) / 2.0)[None, :])[0]
+            s, rot, t = self.mean_size_, np.eye(3), centre
+        else:
+            start = np.asarray(start, dtype=float)
+            if start.shape != self.mean_shape_.shape:
+                raise ValueError(
+                    f"`start` must be {self.mean_shape_.shape} landmarks, got {start.shape}"
+                )
+            if not np.ptp(start, axis=0).any():
+                raise ValueError("the `start` landmarks all coincide: no pose to start from")
+            s, rot, t, b = self._fit_to_points(start, b)
+        n_levels = self.n_levels if levels is None else min(int(levels), self.n_levels)
+        if n_levels < 1:
+            raise ValueError(f"`levels` must be >= 1, got {levels}")
+        k, m = self.profile_half, self.search_half
+        shifts = np.arange(-(m - k), m - k + 1)
+        n_iter = []
+        for level in reversed(range(n_levels)):
+            sigma, step = self._level_sigma_step(level)
+            arr = _smoothed(image, sigma)
+            mean_g = self.profile_means_[level]
+            prec = self.profile_precisions_[level]
+            it = 0
+            for it in range(1, self.max_iter + 1):  # noqa: B007
+                x = s * self._instance(b) @ rot.T + t
+                normals = vertex_normals(x, self.faces_)
+                long = _profiles(image, arr, x, normals, m, step)  # (N, 2m+1)
+                windows = np.stack([long[:, d + m - k : d + m + k + 1] for d in shifts], axis=1)
+                diff = _normalise(windows) - mean_g[:, None, :]
+                cost = np.einsum("nsi,nij,nsj->ns", diff, prec, diff)
+                best = shifts[np.argmin(cost, axis=1)]
+                y = x + (best * step)[:, None] * normals
+                s, rot, t, b = self._fit_to_points(y, b)
+                if np.mean(np.abs(best) <= self._converged_shift) >= 0.9:
+                    break
+            n_iter.append(it)
+        return ShapeSearch(
+            landmarks=s * self._instance(b) @ rot.T + t,
+            shape_parameters=b,
+            pose={"scale": s, "rotation": rot, "translation": t},
+            n_iter=n_iter,
+        )
+
+    # -- persistence ------------------------------------------------------------------------
+
+    def state(self) -> dict[str, np.ndarray]:
+        """Arrays that :meth:`from_state` restores (for the model folder's NPZ)."""
+        self._check_fitted()
+        out = {name: np.array(getattr(self, name)) for name in _STATE_SCALARS}
+        out.update(
+            mean_shape=self.mean_shape_,
+            modes=self.modes_,
+            eigenvalues=self.eigenvalues_,
+            mean_size=np.array(self.mean_size_),
+            faces=self.faces_,
+            closest_to_mean=np.array(self.closest_to_mean_),
+            profile_means=self.profile_means_,
+            profile_precisions=self.profile_precisions_,
+        )
+        return out
+
+    @classmethod
+    def from_state(cls, state) -> ActiveShapeModel:
+        """Rebuild from :meth:`state`; ``ValueError`` if the arrays do not fit together."""
+        model = cls(
+            variance=float(state["variance"]),
+            limit=float(state["limit"]),
+            profile_half=int(state["profile_half"]),
+            search_half=int(state["search_half"]),
+            step_mm=float(state["step_mm"]),
+            n_levels=int(state["n_levels"]),
+            max_iter=int(state["max_iter"]),
+        )
+        mean = np.asarray(state["mean_shape"], dtype=float)
+        modes = np.asarray(state["modes"], dtype=float)
+        eig = np.asarray(state["eigenvalues"], dtype=float)
+        faces = np.asarray(state["faces"], dtype=np.int64)
+        means = np.asarray(state["profile_means"], dtype=float)
+        prec = np.asarray(state["profile_precisions"], dtype=float)
+        n, width = len(mean), 2 * model.profile_half + 1
+        if (
+            mean.shape != (n, 3)
+            or modes.shape != (len(eig), n, 3)
+            or faces.ndim != 2
+            or faces.shape[1] != 3
+            or faces.min(initial=0) < 0
+            or faces.max(initial=0) >= n
+            or means.shape != (model.n_levels, n, width)
+            or prec.shape != (model.n_levels, n, width, width)
+        ):
+            raise ValueError("active shape model arrays of inconsistent shapes")
+        model.mean_shape_, model.modes_, model.eigenvalues_ = mean, modes, eig
+        model.mean_size_ = float(state["mean_size"])
+        model.faces_ = faces
+        model.closest_to_mean_ = int(state["closest_to_mean"])
+        model.profile_means_, model.profile_precisions_ = means, prec
+        return model
