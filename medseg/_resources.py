@@ -59,6 +59,10 @@ POTENTIAL_CHUNK_BYTES = 256 * 2**20
 # component's log-density and the exp temporaries (57 to 74 bytes measured with tracemalloc
 # on the D-dimensional densities of 2026-11-23). Also the rule that sizes the chunks.
 BYTES_PER_TRIPLE = 72
+# float64 temporaries of OrientationPrior.tables per candidate triple of one chunk of
+# cliques: triangle normals and summed directions (3 components each), their dot product,
+# norms, the cosine and the cost (112 bytes measured with tracemalloc on 2026-11-24).
+ORIENTATION_BYTES_PER_TRIPLE = 112
 # float64 temporaries of the closed-form 3x3 eigenvalues, per voxel of one z-slab chunk
 _EIG_TEMPORARIES = 26
 _EIG_CHUNK = 8  # slabs per chunk in compute_features
@@ -246,6 +250,13 @@ def solver_bytes(
     return tables + 3 * messages + kernels
 
 
+def orientation_table_bytes(n_cliques: int, n_candidates: int, *, chunk_size: int = 16) -> int:
+    """Peak memory (bytes) of ``OrientationPrior.tables``: the ``(C, L, L, L)`` float32
+    result plus the float64 temporaries of one chunk of ``chunk_size`` cliques."""
+    c, lab = int(n_cliques), int(n_candidates)
+    return 4 * c * lab**3 + min(int(chunk_size), c) * ORIENTATION_BYTES_PER_TRIPLE * lab**3
+
+
 def triplet_mrf_bytes(
     n_landmarks: int,
     n_cliques: int,
@@ -253,15 +264,19 @@ def triplet_mrf_bytes(
     *,
     method: str = "mplp",
     chunk_bytes: int = POTENTIAL_CHUNK_BYTES,
+    orientation: bool = False,
 ) -> int:
     """Peak memory (bytes) of building the potential tables and solving the MRF.
 
     The tables stay alive during the solve, so the peak is the larger of the build
-    (:func:`potential_table_bytes`) and the tables plus the solver's working memory
-    (:func:`solver_bytes`).
+    (:func:`potential_table_bytes`, then with ``orientation`` the handedness tables that
+    are added to them, :func:`orientation_table_bytes`) and the tables plus the solver's
+    working memory (:func:`solver_bytes`).
     """
     tables = 4 * int(n_cliques) * int(n_candidates) ** 3
     build = potential_table_bytes(n_cliques, n_candidates, chunk_bytes=chunk_bytes)
+    if orientation:
+        build = max(build, tables + orientation_table_bytes(n_cliques, n_candidates))
     solve = tables + solver_bytes(n_landmarks, n_cliques, n_candidates, method=method)
     return max(build, solve)
 

@@ -386,14 +386,14 @@ class ShapePriorSegmenter:
             t0 = time.perf_counter()
             self._check_mrf_memory(n, len(self.prior_.cliques_), cands.positions.shape[1], limit)
             tables = self.prior_.potential_tables(cands.positions, max_table_bytes=limit)
-            orientation = self.orientation_
-            if self.orientation_weight and orientation is not None:
+            if self._uses_orientation():
                 directions = gradient_directions(
                     image, cands.positions.reshape(-1, 3), sigma_mm=self.orientation_sigma_mm
                 ).reshape(cands.positions.shape)
-                tables += float(self.orientation_weight) * orientation.tables(
-                    cands.positions, directions
-                )
+                handedness = self.orientation_.tables(cands.positions, directions)
+                handedness *= float(self.orientation_weight)  # in place: no third table
+                tables += handedness
+                del handedness
             timings["potentials"] = time.perf_counter() - t0
             t0 = time.perf_counter()
             problem = MRF.from_triplets(unaries, self.prior_.cliques_, tables)
@@ -468,7 +468,8 @@ class ShapePriorSegmenter:
     def _mrf_hint(self, n_landmarks: int, n_cliques: int, n_lab: int, limit: int) -> str:
         fit_l = next(
             (lab for lab in range(n_lab - 1, 0, -1)
-             if triplet_mrf_bytes(n_landmarks, n_cliques, lab, method=self.mrf_method) <= limit),
+             if triplet_mrf_bytes(n_landmarks, n_cliques, lab, method=self.mrf_method,
+                                  orientation=self._uses_orientation()) <= limit),
             0,
         )  # fmt: skip
         lower_l = (
@@ -489,7 +490,13 @@ class ShapePriorSegmenter:
 
     def _check_mrf_memory(self, n_landmarks: int, n_cliques: int, n_lab: int, limit) -> None:
         check_memory(
-            triplet_mrf_bytes(n_landmarks, n_cliques, n_lab, method=self.mrf_method),
+            triplet_mrf_bytes(
+                n_landmarks,
+                n_cliques,
+                n_lab,
+                method=self.mrf_method,
+                orientation=self._uses_orientation(),
+            ),
             what=(
                 f"the shape-prior MRF ({n_cliques} triplet cliques x {n_lab}^3 candidate "
                 f"triples: {format_bytes(4 * n_cliques * n_lab**3)} of potential tables, "
@@ -539,6 +546,11 @@ class ShapePriorSegmenter:
         if isinstance(self.cliques, str):
             n_cliques = len(select_cliques(procrustes_mean(landmarks), method=self.cliques))
             self._check_mrf_memory(landmarks.shape[1], n_cliques, int(self.n_candidates), limit)
+
+    def _uses_orientation(self) -> bool:
+        """Whether segment adds the handedness tables (fit always learns them)."""
+        fitted_without = hasattr(self, "orientation_") and self.orientation_ is None
+        return bool(self.orientation_weight) and not fitted_without
 
     def _check_refine_levels(self) -> None:
         levels = self.refine_levels

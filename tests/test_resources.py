@@ -20,6 +20,7 @@ from medseg._resources import (
     detection_bytes,
     feature_map_bytes,
     memory_limit_bytes,
+    orientation_table_bytes,
     physical_memory_bytes,
     potential_table_bytes,
     solver_bytes,
@@ -30,7 +31,7 @@ from medseg.detection import FeatureSettings, compute_features
 from medseg.errors import ResourceLimitError
 from medseg.model import ShapePriorSegmenter
 from medseg.mrf import MRF, solve
-from medseg.shape import TripletPrior
+from medseg.shape import OrientationPrior, TripletPrior
 
 # an estimate within this factor of the measured peak, either way
 FACTOR = 1.3
@@ -96,6 +97,22 @@ def test_potential_table_estimate_matches_the_measured_peak(prior_and_candidates
         tables, measured = _peak(prior.potential_tables, cand, max_bytes=chunk_bytes)
         estimate = potential_table_bytes(n_cliques, n_lab, chunk_bytes=chunk_bytes)
         assert _within(estimate, measured), (chunk_bytes, estimate, measured)
+    assert tables.nbytes == 4 * n_cliques * n_lab**3
+
+
+def test_orientation_table_estimate_matches_the_measured_peak(prior_and_candidates):
+    prior, cand = prior_and_candidates
+    rng = np.random.default_rng(1)
+    shapes = cand[:, :12].transpose(1, 0, 2)  # any (S, N, 3) configurations will do
+    orientation = OrientationPrior().fit(
+        shapes, rng.normal(size=shapes.shape), cliques=prior.cliques_
+    )
+    directions = rng.normal(size=cand.shape)
+    n_cliques, n_lab = len(prior.cliques_), cand.shape[1]
+    for chunk_size in (4, 16):
+        tables, measured = _peak(orientation.tables, cand, directions, chunk_size=chunk_size)
+        estimate = orientation_table_bytes(n_cliques, n_lab, chunk_size=chunk_size)
+        assert _within(estimate, measured), (chunk_size, estimate, measured)
     assert tables.nbytes == 4 * n_cliques * n_lab**3
 
 
@@ -190,7 +207,9 @@ def test_segment_estimate_matches_the_measured_peak(fitted):
     shape, spacing = image.GetSize()[::-1], image.GetSpacing()[::-1]
     estimate = max(
         detection_bytes(shape, spacing=spacing, settings=model.detector_.features, n_landmarks=n),
-        triplet_mrf_bytes(n, len(model.prior_.cliques_), n_lab, method=model.mrf_method),
+        triplet_mrf_bytes(
+            n, len(model.prior_.cliques_), n_lab, method=model.mrf_method, orientation=True
+        ),
     )
     assert _within(estimate, measured), (estimate, measured)
 
