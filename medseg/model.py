@@ -244,7 +244,7 @@ class ShapePriorSegmenter:
     def fit(
         self, cohort: Cohort, *, landmark_source: str = "auto", progress: bool = False
     ) -> ShapePriorSegmenter:
-        """Learn landmarks, detectors, prior and template from a cohort.
+        """Learn landmarks, detectors, prior, template and refining shape model from a cohort.
 
         Parameters
         ----------
