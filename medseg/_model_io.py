@@ -45,7 +45,7 @@ FORMAT_VERSION = 3
 #: the landmark refinement (``shape_model.npz`` and the ``refine_levels`` parameter)
 _READABLE_VERSIONS = (1, 2, 3)
 #: format version that introduced an optional file or parameter
-_SINCE = {"orientation.npz": 2, "shape_model.npz": 3, "refine_levels": 3}
+_SINCE = {"orientation.npz": 2, "shape_model.npz": 3, "refine_levels": 3, "n_hypotheses": 3}
 _PARAMS = (
     "n_landmarks",
     "labels",
@@ -57,6 +57,7 @@ _PARAMS = (
     "orientation_weight",
     "orientation_sigma_mm",
     "refine_levels",
+    "n_hypotheses",
     "landmark_noise_mm",
     "n_noise_copies",
     "n_estimators",

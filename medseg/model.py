@@ -51,6 +51,33 @@ __all__ = ["ShapePriorSegmenter", "Segmentation", "load_model"]
 
 MIN_TRAINING_CASES = 5
 _SHAPE_MODEL_LEVELS = 3  # resolution levels the refining active shape model learns
+# Each further MRF hypothesis adds this cost (nats) to every candidate within this distance
+# of the landmark's position in an earlier hypothesis, so the solver moves elsewhere.
+_HYPOTHESIS_PENALTY = 5.0
+_HYPOTHESIS_EXCLUSION_MM = 4.0
+
+
+@dataclass(frozen=True)
+class Hypothesis:
+    """One MRF solution and its active-shape refinement.
+
+    Attributes
+    ----------
+    labels : (N,) int array
+        The candidate chosen for each landmark.
+    chosen : (N, 3) float array, mm
+        Those candidates' positions.
+    landmarks : (N, 3) float array, mm
+        The refined landmarks.
+    profile_cost : float
+        How well the refined instance fits the image's boundary profiles (lower is better,
+        :meth:`medseg.shape.ActiveShapeModel.profile_cost`).
+    """
+
+    labels: np.ndarray
+    chosen: np.ndarray
+    landmarks: np.ndarray
+    profile_cost: float
 
 
 @dataclass
@@ -80,6 +107,10 @@ class Segmentation:
     chosen : (N, 3) float array, mm
         The candidates the MRF (or, without prior, the detectors) chose, before the
         active-shape refinement that gives ``landmarks`` (equal to them without it).
+    hypotheses : list of Hypothesis
+        With refinement: the MRF solutions that were refined, the first being the MRF's
+        optimum (``mrf``); ``landmarks`` come from the one with the lowest profile cost.
+        Empty without refinement.
     """
 
     label: Any
@@ -90,6 +121,7 @@ class Segmentation:
     confidence: np.ndarray
     timings: dict = field(default_factory=dict)
     chosen: np.ndarray | None = None
+    hypotheses: list = field(default_factory=list)
     image: sitk.Image | None = field(default=None, repr=False)
 
     def plot(self, *, axis: int = 0, index: int | None = None):
@@ -149,6 +181,12 @@ class ShapePriorSegmenter:
         point distribution model is fitted to them and moved onto the boundary's grey-level
         profiles, so the result is no longer tied to the candidates' grid and to their
         localisation noise. 0 keeps the MRF's landmarks, as in the paper.
+    n_hypotheses : int, default 2
+        MRF solutions refined per image (with ``refine_levels > 0``): after the optimum,
+        each further solve makes the candidates near the earlier solutions' landmarks cost
+        more, and the refined solution whose boundary profiles fit the image best is kept
+        (a pose-invariant check of the MRF's choice by the image). 1 refines the optimum
+        only.
     landmark_noise_mm : float, default 1.5
         Standard deviation of the localisation noise of detected landmarks. The clique
         densities are fitted to training shapes jittered by this much (``n_noise_copies``
@@ -209,6 +247,7 @@ class ShapePriorSegmenter:
         orientation_weight: float = 1.0,
         orientation_sigma_mm: float = 1.0,
         refine_levels: int = 2,
+        n_hypotheses: int = 2,
         landmark_noise_mm: float = 1.5,
         n_noise_copies: int = 10,
         n_estimators: int = 60,
@@ -229,6 +268,7 @@ class ShapePriorSegmenter:
         self.orientation_weight = orientation_weight
         self.orientation_sigma_mm = orientation_sigma_mm
         self.refine_levels = refine_levels
+        self.n_hypotheses = n_hypotheses
         self.landmark_noise_mm = landmark_noise_mm
         self.n_noise_copies = n_noise_copies
         self.n_estimators = n_estimators
@@ -265,7 +305,7 @@ class ShapePriorSegmenter:
             raise ValueError(f"`orientation_weight` must be finite and >= 0; got {weight}")
         if not (np.isfinite(sigma) and sigma > 0):
             raise ValueError(f"`orientation_sigma_mm` must be finite and > 0; got {sigma}")
-        self._check_refine_levels()
+        self._check_refinement()
         if len(cohort) < MIN_TRAINING_CASES:
             raise CohortError(
                 f"cohort {cohort.name!r} has {len(cohort)} cases; training needs at least "
@@ -411,13 +451,14 @@ class ShapePriorSegmenter:
             confidence = _margin(unaries)
         landmarks = cands.positions[np.arange(n), choice]
         chosen = landmarks
+        hypotheses: list[Hypothesis] = []
         if use_prior and self.refine_levels and self.shape_model_ is not None:
-            self._check_refine_levels()
+            self._check_refinement()
             check_distinct_landmarks(chosen, "chosen landmarks")
             t0 = time.perf_counter()
-            landmarks = self.shape_model_.search(
-                image, start=landmarks, levels=int(self.refine_levels)
-            ).landmarks
+            hypotheses = self._refined_hypotheses(image, cands, unaries, tables, result, budget)
+            best = min(hypotheses, key=lambda h: h.profile_cost)
+            chosen, landmarks = best.chosen, best.landmarks
             timings["refinement"] = time.perf_counter() - t0
 
         t0 = time.perf_counter()
@@ -442,8 +483,35 @@ class ShapePriorSegmenter:
             confidence=confidence,
             timings=timings,
             chosen=chosen,
+            hypotheses=hypotheses,
             image=image,
         )
+
+    def _refined_hypotheses(self, image, cands, unaries, tables, result, budget):
+        """The MRF's optimum and ``n_hypotheses - 1`` solutions away from it, each refined."""
+        positions = cands.positions
+        rows = np.arange(positions.shape[0])
+        penalised = np.array(unaries, dtype=float)
+        labels = np.asarray(result.x)
+        out = []
+        for k in range(int(self.n_hypotheses)):
+            if k:
+                earlier = positions[rows, labels]
+                near = np.linalg.norm(positions - earlier[:, None], axis=-1)
+                penalised[near < _HYPOTHESIS_EXCLUSION_MM] += _HYPOTHESIS_PENALTY
+                other = solve(
+                    MRF.from_triplets(penalised, self.prior_.cliques_, tables),
+                    method=self.mrf_method,
+                    max_iter=self.max_iter,
+                    max_bytes=budget,
+                )
+                labels = np.asarray(other.x)
+            chosen = positions[rows, labels]
+            if k and len(np.unique(chosen, axis=0)) < len(chosen):
+                continue  # collapsed onto shared candidates: nothing to refine
+            found = self.shape_model_.search(image, start=chosen, levels=int(self.refine_levels))
+            out.append(Hypothesis(labels, chosen, found.landmarks, found.profile_cost))
+        return out
 
     # -- persistence ------------------------------------------------------------------------
 
@@ -552,7 +620,7 @@ class ShapePriorSegmenter:
         fitted_without = hasattr(self, "orientation_") and self.orientation_ is None
         return bool(self.orientation_weight) and not fitted_without
 
-    def _check_refine_levels(self) -> None:
+    def _check_refinement(self) -> None:
         levels = self.refine_levels
         if (
             isinstance(levels, bool)
@@ -563,6 +631,9 @@ class ShapePriorSegmenter:
                 f"`refine_levels` must be an integer from 0 to {_SHAPE_MODEL_LEVELS}; "
                 f"got {levels!r}"
             )
+        n = self.n_hypotheses
+        if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
+            raise ValueError(f"`n_hypotheses` must be an integer >= 1; got {n!r}")
 
     def _check_is_fitted(self) -> None:
         if not hasattr(self, "detector_"):

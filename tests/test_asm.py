@@ -150,6 +150,13 @@ def test_search_from_a_nearby_start_moves_it_onto_the_boundary(phantom, shape_mo
     assert start_error > 2.5
     assert error < 0.6 * start_error
     assert len(found.n_iter) == 2
+    # the profile cost tells the boundary from a configuration 3 mm outside it
+    assert found.profile_cost == pytest.approx(
+        shape_model.profile_cost(test.load_image(), found.landmarks)
+    )
+    outside = truth + 3.0 * vertex_normals(truth, shape_model.faces_)
+    image = test.load_image()
+    assert shape_model.profile_cost(image, truth) < 0.5 * shape_model.profile_cost(image, outside)
     with pytest.raises(ValueError, match="start"):
         shape_model.search(test.load_image(), start=start[:-1])
 

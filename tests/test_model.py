@@ -139,7 +139,7 @@ def _as_older_version(saved: Path, folder: Path, version: int) -> Path:
     """A copy of a saved model as medseg wrote it before format ``version + 1``."""
     old = Path(shutil.copytree(saved, folder))
     meta = json.loads((old / "model.json").read_text(encoding="utf-8"))
-    dropped = {2: (["shape_model.npz"], ["refine_levels"])}
+    dropped = {2: (["shape_model.npz"], ["refine_levels", "n_hypotheses"])}
     dropped[1] = (
         dropped[2][0] + ["orientation.npz"],
         dropped[2][1] + ["orientation_weight", "orientation_sigma_mm"],
@@ -186,24 +186,41 @@ def test_current_model_without_one_of_its_files_is_incomplete(saved, tmp_path, n
         load_model(broken)
 
 
-def test_refinement_starts_from_the_mrf_choice(fitted, cohort):
+def test_refinement_keeps_the_mrf_solution_that_fits_the_image_best(fitted, cohort):
     image = cohort[6].load_image()
     seg = fitted.segment(image)
     n = seg.candidates.positions.shape[0]
-    np.testing.assert_array_equal(
-        seg.chosen, seg.candidates.positions[np.arange(n), np.asarray(seg.mrf.x)]
-    )
-    expected = fitted.shape_model_.search(image, start=seg.chosen, levels=fitted.refine_levels)
+    first, *others = seg.hypotheses
+    assert 1 <= len(seg.hypotheses) <= fitted.n_hypotheses
+    np.testing.assert_array_equal(first.labels, np.asarray(seg.mrf.x))  # the MRF's optimum
+    for h in others:  # pushed away from the optimum
+        assert np.any(h.labels != first.labels)
+    best = min(seg.hypotheses, key=lambda h: h.profile_cost)
+    np.testing.assert_array_equal(seg.chosen, best.chosen)
+    np.testing.assert_array_equal(seg.chosen, seg.candidates.positions[np.arange(n), best.labels])
+    expected = fitted.shape_model_.search(image, start=best.chosen, levels=fitted.refine_levels)
     np.testing.assert_array_equal(seg.landmarks, expected.landmarks)
+    assert best.profile_cost == pytest.approx(
+        fitted.shape_model_.profile_cost(image, seg.landmarks)
+    )
+    single = copy.copy(fitted)
+    single.n_hypotheses = 1
+    only = single.segment(image)
+    assert len(only.hypotheses) == 1
+    np.testing.assert_array_equal(only.landmarks, first.landmarks)
     unrefined = copy.copy(fitted)
     unrefined.refine_levels = 0
-    np.testing.assert_array_equal(unrefined.segment(image).landmarks, seg.chosen)
+    plain = unrefined.segment(image)
+    np.testing.assert_array_equal(plain.landmarks, first.chosen)
+    assert plain.hypotheses == []
     detection = fitted.segment(image, use_prior=False)  # the baseline is not refined
     np.testing.assert_array_equal(detection.landmarks, detection.chosen)
-    for bad in (-1, 4, 1.5, True):
-        unrefined.refine_levels = bad
-        with pytest.raises(ValueError, match="refine_levels"):
-            unrefined.segment(image)
+    bad_values = {"refine_levels": (-1, 4, 1.5, True), "n_hypotheses": (0, 2.0)}
+    for name, bad in [(name, v) for name, values in bad_values.items() for v in values]:
+        broken = copy.copy(fitted)
+        setattr(broken, name, bad)
+        with pytest.raises(ValueError, match=name):
+            broken.segment(image)
 
 
 def test_unfitted_and_too_small(cohort):
@@ -217,6 +234,8 @@ def test_unfitted_and_too_small(cohort):
         ShapePriorSegmenter(orientation_sigma_mm=0.0).fit(cohort)
     with pytest.raises(ValueError, match="refine_levels"):
         ShapePriorSegmenter(refine_levels=5).fit(cohort)
+    with pytest.raises(ValueError, match="n_hypotheses"):
+        ShapePriorSegmenter(n_hypotheses=0).fit(cohort)
 
 
 def test_cli_train_then_segment_a_folder(cohort, saved, tmp_path, capsys):

@@ -255,12 +255,17 @@ class ShapeSearch:
         ``scale`` (mm, centroid size), ``rotation`` (3, 3), ``translation`` (3,) mm.
     n_iter : list of int
         Iterations per searched level, coarse to fine.
+    profile_cost : float
+        How well the image fits the model at ``landmarks``: the mean Mahalanobis distance of
+        the landmarks' grey-level profiles to their models at the finest level (lower is
+        better; see :meth:`ActiveShapeModel.profile_cost`).
     """
 
     landmarks: np.ndarray
     shape_parameters: np.ndarray
     pose: dict
     n_iter: list
+    profile_cost: float
 
 
 _STATE_SCALARS = (
@@ -473,12 +478,35 @@ class ActiveShapeModel:
                 if np.mean(np.abs(best) <= self._converged_shift) >= 0.9:
                     break
             n_iter.append(it)
+        landmarks = s * self._instance(b) @ rot.T + t
         return ShapeSearch(
-            landmarks=s * self._instance(b) @ rot.T + t,
+            landmarks=landmarks,
             shape_parameters=b,
             pose={"scale": s, "rotation": rot, "translation": t},
             n_iter=n_iter,
+            profile_cost=self._profile_cost(image, arr, landmarks),
         )
+
+    def _profile_cost(self, image: sitk.Image, finest: np.ndarray, landmarks) -> float:
+        k = self.profile_half
+        _, step = self._level_sigma_step(0)
+        normals = vertex_normals(landmarks, self.faces_)
+        diff = _normalise(_profiles(image, finest, landmarks, normals, k, step))
+        diff = diff - self.profile_means_[0]
+        return float(np.einsum("ni,nij,nj->n", diff, self.profile_precisions_[0], diff).mean())
+
+    def profile_cost(self, image: sitk.Image, landmarks) -> float:
+        """Mean Mahalanobis distance of the profiles at ``landmarks`` to the finest models.
+
+        The model's own measure of how well an instance sits on the image's boundary,
+        defined in physical space (pose invariant); the segmenter uses it to choose between
+        refined MRF solutions.
+        """
+        self._check_fitted()
+        landmarks = np.asarray(landmarks, dtype=float)
+        if landmarks.shape != self.mean_shape_.shape:
+            raise ValueError(f"`landmarks` must be {self.mean_shape_.shape}, got {landmarks.shape}")
+        return self._profile_cost(image, _smoothed(image, self._level_sigma_step(0)[0]), landmarks)
 
     # -- persistence ------------------------------------------------------------------------
 
