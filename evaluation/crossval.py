@@ -20,6 +20,7 @@ import inspect
 import json
 import math
 import os
+import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -272,6 +273,18 @@ class FoldTask:
     predictions_dir: str | None = None
 
 
+# A method that raised MedsegError on a case: no overlap, no surface, no landmarks. The
+# summary counts the non-finite values (shown as ``finite/total``), so failures stay visible.
+_FAILED = {
+    "dice": 0.0,
+    "hd95": math.inf,
+    "assd": math.inf,
+    "landmark_error_mm": math.nan,
+    "landmark_error_vox": math.nan,
+    "gap": math.nan,
+}
+
+
 def _score(result, mask, reference_landmarks, image) -> dict:
     label = read_image(result.label)
     scores = score_segmentation(label, mask)
@@ -359,7 +372,14 @@ def run_fold(task: FoldTask, on_row: Callable[[dict], None] | None = None) -> li
             if shares and id(item) in detected:
                 extra["candidates"], reused = detected[id(item)]
             t0 = time.perf_counter()
-            result = estimator.segment(image, **kwargs, **extra)
+            try:
+                result = estimator.segment(image, **kwargs, **extra)
+            except MedsegError as exc:  # one failed case is a result, not the end of the run
+                print(
+                    f"{name} failed on {case.case_id} ({angle:g} degrees), scored as Dice 0: {exc}",
+                    file=sys.stderr,
+                )
+                result = None
             seconds = time.perf_counter() - t0 + reused
             if shares and id(item) not in detected and hasattr(result, "candidates"):
                 detected[id(item)] = (result.candidates, result.timings.get("detection", 0.0))
@@ -370,11 +390,11 @@ def run_fold(task: FoldTask, on_row: Callable[[dict], None] | None = None) -> li
                 "subject": str(case.subject),
                 "perturbation_deg": float(angle),
                 "scale": float(scale),
-                **_score(result, mask, ref_lm, image),
+                **(_FAILED if result is None else _score(result, mask, ref_lm, image)),
                 "seconds": seconds,
                 "fit_seconds": fit_seconds,
             }
-            if task.predictions_dir is not None and angle == 0:
+            if result is not None and task.predictions_dir is not None and angle == 0:
                 _save_prediction(result, image, Path(task.predictions_dir), name, case.case_id)
             rows.append(row)
             if on_row is not None:

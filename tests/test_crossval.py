@@ -85,6 +85,35 @@ class ThresholdMethod:
         return _Result(label, self.landmarks_ + offset)
 
 
+class FailsOnOneCase(ThresholdMethod):
+    """Fake method that raises a MedsegError on one case (a real failure mode, e.g.
+    detected landmarks that coincide), to test that the run goes on."""
+
+    def segment(self, image, *, offset: float = 0.0):
+        if sitk.GetArrayViewFromImage(image).sum() == _FAILING_SUM[0]:
+            raise MedsegError("landmarks 3 and 4 coincide")
+        return super().segment(image, offset=offset)
+
+
+_FAILING_SUM = [None]
+
+
+def test_a_case_the_method_fails_on_is_recorded_and_the_run_goes_on(tmp_path, capsys):
+    cohort = tiny_cohort(n_subjects=6, per_subject=1)
+    failing = cohort[1]
+    _FAILING_SUM[0] = sitk.GetArrayViewFromImage(failing.load_image()).sum()
+    spec = (MethodSpec(FailsOnOneCase, {}, {"thresh": {}}),)
+    out = run_folds(cohort, spec, tmp_path / "run", folds=6)
+    rows = read_results(out)
+    assert len(rows) == len(cohort)
+    bad = [r for r in rows if r["case"] == failing.case_id]
+    good = [r for r in rows if r["case"] != failing.case_id]
+    assert len(bad) == 1 and bad[0]["dice"] == 0.0 and np.isnan(bad[0]["landmark_error_mm"])
+    assert np.isinf(bad[0]["hd95"])
+    assert all(r["dice"] > 0.5 and np.isfinite(r["landmark_error_mm"]) for r in good)
+    assert f"thresh failed on {failing.case_id}" in capsys.readouterr().err
+
+
 def _specs(log=None):
     return (
         MethodSpec(
