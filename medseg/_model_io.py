@@ -137,7 +137,7 @@ def save_model(model, path: Path) -> Path:
 
 def load_model(cls, path: Path):
     from medseg.detection import LandmarkDetector
-    from medseg.shape import TripletPrior
+    from medseg.shape import ActiveShapeModel, OrientationPrior, TripletPrior
 
     path = Path(path)
     meta_path = path / "model.json"
@@ -187,47 +187,35 @@ def load_model(cls, path: Path):
         raise ModelFileError(f"{template} is corrupt ({exc})") from None
     model.detector_ = LandmarkDetector.load(path / "detector")
     model.prior_ = TripletPrior.load(path / "prior.npz")
-    model.orientation_ = _load_orientation(path / "orientation.npz", version, model.prior_)
-    model.shape_model_ = _load_shape_model(path / "shape_model.npz", version, model.landmarks_)
+    model.orientation_ = _load_part(path, "orientation.npz", version, OrientationPrior)
+    if model.orientation_ is not None and not np.array_equal(
+        model.orientation_.cliques_, model.prior_.cliques_
+    ):
+        raise ModelFileError(f"{path / 'orientation.npz'} does not match the cliques of prior.npz")
+    model.shape_model_ = _load_part(path, "shape_model.npz", version, ActiveShapeModel)
+    if model.shape_model_ is not None and (
+        model.shape_model_.mean_shape_.shape != np.shape(model.landmarks_)[1:]
+    ):
+        raise ModelFileError(
+            f"{path / 'shape_model.npz'} does not match the landmarks of template.npz"
+        )
     model.cases_ = list(meta.get("cases", []))
     model.rejected_ = dict(meta.get("rejected", {}))
     return model
 
 
-def _load_orientation(path: Path, version: int, prior):
-    """The handedness term, or None for a version-1 model (saved before it existed)."""
-    from medseg.shape import OrientationPrior
-
-    if version < _SINCE["orientation.npz"]:
+def _load_part(path: Path, name: str, version: int, cls):
+    """``cls.from_state`` of the NPZ ``name``, or None when ``version`` predates it."""
+    if version < _SINCE[name]:
         return None
-    if not path.is_file():
-        raise ModelFileError(f"{path} is missing; the model is incomplete")
+    file = path / name
+    if not file.is_file():
+        raise ModelFileError(f"{file} is missing; the model is incomplete")
     try:
-        with np.load(path, allow_pickle=False) as npz:
-            orientation = OrientationPrior.from_state({name: npz[name] for name in npz.files})
+        with np.load(file, allow_pickle=False) as npz:
+            return cls.from_state({key: npz[key] for key in npz.files})
     except (ValueError, KeyError, TypeError, OSError, zipfile.BadZipFile) as exc:
-        raise ModelFileError(f"{path} is corrupt ({exc})") from None
-    if not np.array_equal(orientation.cliques_, prior.cliques_):
-        raise ModelFileError(f"{path} does not match the cliques of prior.npz")
-    return orientation
-
-
-def _load_shape_model(path: Path, version: int, training_landmarks):
-    """The refining active shape model, or None before version 3 (saved before it existed)."""
-    from medseg.shape import ActiveShapeModel
-
-    if version < _SINCE["shape_model.npz"]:
-        return None
-    if not path.is_file():
-        raise ModelFileError(f"{path} is missing; the model is incomplete")
-    try:
-        with np.load(path, allow_pickle=False) as npz:
-            shape_model = ActiveShapeModel.from_state({name: npz[name] for name in npz.files})
-    except (ValueError, KeyError, TypeError, OSError, zipfile.BadZipFile) as exc:
-        raise ModelFileError(f"{path} is corrupt ({exc})") from None
-    if shape_model.mean_shape_.shape != np.shape(training_landmarks)[1:]:
-        raise ModelFileError(f"{path} does not match the landmarks of template.npz")
-    return shape_model
+        raise ModelFileError(f"{file} is corrupt ({exc})") from None
 
 
 def _check_archives(path: Path, version: int) -> None:
