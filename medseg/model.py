@@ -35,7 +35,7 @@ from medseg._resources import (
 from medseg.correspondence import cohort_landmarks, label_surface, landmarks_from_labels
 from medseg.datasets import Cohort
 from medseg.detection import CandidateSet, LandmarkDetector, gradient_directions
-from medseg.errors import CohortError, NotFittedError
+from medseg.errors import CohortError, ImageGeometryError, NotFittedError
 from medseg.io import as_input_type, read_image, select_labels
 from medseg.mrf import DEFAULT_MAX_BYTES, MRF, SolveResult, solve
 from medseg.reconstruction import check_distinct_landmarks, warp_mask, warp_surface
@@ -454,7 +454,7 @@ class ShapePriorSegmenter:
         hypotheses: list[Hypothesis] = []
         if use_prior and self.refine_levels and self.shape_model_ is not None:
             self._check_refinement()
-            check_distinct_landmarks(chosen, "chosen landmarks")
+            _check_not_collapsed(chosen)
             t0 = time.perf_counter()
             hypotheses = self._refined_hypotheses(image, cands, unaries, tables, result, budget)
             best = min(hypotheses, key=lambda h: h.profile_cost)
@@ -507,7 +507,7 @@ class ShapePriorSegmenter:
                 )
                 labels = np.asarray(other.x)
             chosen = positions[rows, labels]
-            if k and len(np.unique(chosen, axis=0)) < len(chosen):
+            if k and _collapsed(chosen):
                 continue  # collapsed onto shared candidates: nothing to refine
             found = self.shape_model_.search(image, start=chosen, levels=int(self.refine_levels))
             out.append(Hypothesis(labels, chosen, found.landmarks, found.profile_cost))
@@ -663,6 +663,32 @@ def _jittered(shapes: np.ndarray, sigma: float, copies: int, rng) -> np.ndarray:
         return shapes
     noise = rng.normal(scale=sigma, size=(copies,) + shapes.shape)
     return (shapes[None] + noise).reshape((-1,) + shapes.shape[1:])
+
+
+# Below this fraction of distinct positions the MRF's landmarks count as collapsed.
+_MIN_DISTINCT_FRACTION = 0.9
+
+
+def _collapsed(points: np.ndarray) -> bool:
+    """Landmarks piled onto a few positions (or a plane): nothing a shape fit can start from.
+
+    Two landmarks sharing a candidate is a local ambiguity the shape model resolves; most of
+    them sharing a few is what detection gives on an image without the structure.
+    """
+    distinct = np.unique(points, axis=0)
+    return (
+        len(distinct) < _MIN_DISTINCT_FRACTION * len(points)
+        or np.linalg.matrix_rank(distinct - distinct.mean(0)) < 3
+    )
+
+
+def _check_not_collapsed(chosen: np.ndarray) -> None:
+    if _collapsed(chosen):
+        check_distinct_landmarks(chosen, "chosen landmarks")  # names two that coincide
+        raise ImageGeometryError(
+            "the chosen landmarks are coplanar: the image does not seem to show the trained "
+            "structure"
+        )
 
 
 def _margin(costs: np.ndarray) -> np.ndarray:
