@@ -314,12 +314,32 @@ def test_cli_train_on_a_dataset_folder(cohort, tmp_path, capsys):
             "6",
             "--seed",
             "3",
+            "--orientation-weight",
+            "0.5",
+            "--refine-levels",
+            "1",
+            "--hypotheses",
+            "3",
             "-q",
         ]
     )
     assert code == 0, capsys.readouterr().err
     assert "trained on 6 of 6 cases" in capsys.readouterr().out
-    assert medseg.load_model(tmp_path / "m").landmarks_.shape == (6, 12, 3)
+    model = medseg.load_model(tmp_path / "m")
+    assert model.landmarks_.shape == (6, 12, 3)
+    assert (model.orientation_weight, model.refine_levels, model.n_hypotheses) == (0.5, 1, 3)
+
+
+@pytest.mark.parametrize(
+    ("flag", "value"),
+    [("--refine-levels", "4"), ("--hypotheses", "0"), ("--orientation-weight", "-1")],
+)
+def test_cli_train_refuses_a_bad_setting_before_reading(flag, value, tmp_path, capsys):
+    with pytest.raises(SystemExit) as info:
+        train_main([str(tmp_path / "no-such-dataset"), "-o", str(tmp_path / "m"), flag, value])
+    assert info.value.code == 2
+    assert flag in capsys.readouterr().err
+    assert not (tmp_path / "m").exists()
 
 
 def test_segmentation_renders_for_a_notebook(fitted, cohort):

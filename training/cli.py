@@ -7,7 +7,14 @@ import sys
 import time
 from collections.abc import Sequence
 
-from medseg._cli import EXIT_OK, parse_labels, run_cli, show_progress
+from medseg._cli import (
+    EXIT_OK,
+    non_negative_float,
+    parse_labels,
+    positive_int,
+    run_cli,
+    show_progress,
+)
 from medseg.datasets import load_cohort, make_phantom_cohort
 from medseg.model import ShapePriorSegmenter
 
@@ -38,7 +45,10 @@ def build_parser() -> argparse.ArgumentParser:
         help="Landmarks per shape (N). Default: the phantom's own, else sized to the structure.",
     )
     parser.add_argument(
-        "--candidates", type=int, default=20, help="Candidates per landmark (L). Default: 20."
+        "--candidates",
+        type=positive_int,
+        default=20,
+        help="Candidates per landmark (L). Default: 20.",
     )
     parser.add_argument(
         "--cliques",
@@ -46,9 +56,30 @@ def build_parser() -> argparse.ArgumentParser:
         default="knn",
         help="Triplet cliques of the shape prior. Default: knn.",
     )
+    parser.add_argument(
+        "--orientation-weight",
+        type=non_negative_float,
+        default=1.0,
+        help="Weight of the handedness term of the prior; 0 is the paper's prior. Default: 1.",
+    )
+    parser.add_argument(
+        "--refine-levels",
+        type=int,
+        choices=range(4),
+        default=2,
+        help="Levels of the active-shape refinement of the MRF's landmarks; 0 keeps them, "
+        "as in the paper. Default: 2.",
+    )
+    parser.add_argument(
+        "--hypotheses",
+        type=positive_int,
+        default=2,
+        help="MRF solutions refined per image; the one whose boundary profiles fit the image "
+        "best is kept. Default: 2.",
+    )
     parser.add_argument("--seed", type=int, default=0, help="Random seed. Default: 0.")
     parser.add_argument(
-        "--jobs", type=int, default=1, help="Parallel jobs for the forests. Default: 1."
+        "--jobs", type=positive_int, default=1, help="Parallel jobs for the forests. Default: 1."
     )
     parser.add_argument(
         "--phantom-subjects",
@@ -72,6 +103,9 @@ def _run(args: argparse.Namespace) -> int:
         labels=labels,
         n_candidates=args.candidates,
         cliques=args.cliques,
+        orientation_weight=args.orientation_weight,
+        refine_levels=args.refine_levels,
+        n_hypotheses=args.hypotheses,
         random_state=args.seed,
         n_jobs=args.jobs,
     ).fit(cohort, progress=show_progress(args.quiet))
