@@ -181,12 +181,14 @@ class ShapePriorSegmenter:
         point distribution model is fitted to them and moved onto the boundary's grey-level
         profiles, so the result is no longer tied to the candidates' grid and to their
         localisation noise. 0 keeps the MRF's landmarks, as in the paper.
-    n_hypotheses : int, default 2
+    n_hypotheses : int, default 4
         MRF solutions refined per image (with ``refine_levels > 0``): after the optimum,
         each further solve makes the candidates near the earlier solutions' landmarks cost
         more, and the refined solution whose boundary profiles fit the image best is kept
         (a pose-invariant check of the MRF's choice by the image). 1 refines the optimum
-        only.
+        only. On the phantom (5-fold) the mean landmark error was 8.3, 6.6, 5.6, 5.0 and
+        5.4 mm with 1 to 5; on hippocampus the Dice did not change; each costs one MRF
+        solve and one search (4 take 1.6 times the CPU time of 2).
     landmark_noise_mm : float, default 1.5
         Standard deviation of the localisation noise of detected landmarks. The clique
         densities are fitted to training shapes jittered by this much (``n_noise_copies``
@@ -247,7 +249,7 @@ class ShapePriorSegmenter:
         orientation_weight: float = 1.0,
         orientation_sigma_mm: float = 1.0,
         refine_levels: int = 2,
-        n_hypotheses: int = 2,
+        n_hypotheses: int = 4,
         landmark_noise_mm: float = 1.5,
         n_noise_copies: int = 10,
         n_estimators: int = 60,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import inspect
 import sys
 import time
 from collections.abc import Sequence
@@ -17,6 +18,11 @@ from medseg._cli import (
 )
 from medseg.datasets import load_cohort, make_phantom_cohort
 from medseg.model import ShapePriorSegmenter
+
+# The model's own defaults, so the command line and the Python API cannot drift apart.
+_DEFAULT = {
+    name: p.default for name, p in inspect.signature(ShapePriorSegmenter).parameters.items()
+}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -47,35 +53,36 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--candidates",
         type=positive_int,
-        default=20,
-        help="Candidates per landmark (L). Default: 20.",
+        default=_DEFAULT["n_candidates"],
+        help=f"Candidates per landmark (L). Default: {_DEFAULT['n_candidates']}.",
     )
     parser.add_argument(
         "--cliques",
         choices=("knn", "delaunay", "all"),
-        default="knn",
-        help="Triplet cliques of the shape prior. Default: knn.",
+        default=_DEFAULT["cliques"],
+        help=f"Triplet cliques of the shape prior. Default: {_DEFAULT['cliques']}.",
     )
     parser.add_argument(
         "--orientation-weight",
         type=non_negative_float,
-        default=1.0,
-        help="Weight of the handedness term of the prior; 0 is the paper's prior. Default: 1.",
+        default=_DEFAULT["orientation_weight"],
+        help="Weight of the handedness term of the prior; 0 is the paper's prior. "
+        f"Default: {_DEFAULT['orientation_weight']:g}.",
     )
     parser.add_argument(
         "--refine-levels",
         type=int,
         choices=range(4),
-        default=2,
+        default=_DEFAULT["refine_levels"],
         help="Levels of the active-shape refinement of the MRF's landmarks; 0 keeps them, "
-        "as in the paper. Default: 2.",
+        f"as in the paper. Default: {_DEFAULT['refine_levels']}.",
     )
     parser.add_argument(
         "--hypotheses",
         type=positive_int,
-        default=2,
+        default=_DEFAULT["n_hypotheses"],
         help="MRF solutions refined per image; the one whose boundary profiles fit the image "
-        "best is kept. Default: 2.",
+        f"best is kept. Default: {_DEFAULT['n_hypotheses']}.",
     )
     parser.add_argument("--seed", type=int, default=0, help="Random seed. Default: 0.")
     parser.add_argument(
