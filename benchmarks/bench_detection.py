@@ -62,9 +62,9 @@ def _boundary_distance(label) -> np.ndarray:
 def _evaluate(det, images, landmarks, *, labels=None, n_candidates=20, stride=2) -> dict:
     """Recall and top-1 error; with ``labels``, also where the candidates lie.
 
-    ``on_target_boundary``: the fraction of all candidates within 2 voxels of the target's
-    boundary. Candidates elsewhere sit on look-alike structures (the phantom's neighbours
-    and distractors), not on a wrong point of the right boundary.
+    ``candidates_on_target_boundary``: the fraction of all candidates within 2 voxels of
+    the target's boundary. Candidates elsewhere sit on look-alike structures (the phantom's
+    neighbours and distractors), not on a wrong point of the right boundary.
     """
     hits, top1, top1_vox, times, on_boundary = [], [], [], [], []
     for k, (image, lms) in enumerate(zip(images, landmarks, strict=True)):
