@@ -2,7 +2,7 @@
 
 Trains a small phantom model, writes ``--n-images`` phantom images into a folder, and runs
 batch inference over the folder exactly as ``medseg-segment -m MODEL -i FOLDER -o OUT``
-does (``inference.cli.main``), measuring the resident set size (VmRSS from
+does (``medseg.inference.cli.main``), measuring the resident set size (VmRSS from
 ``/proc/<pid>/status``):
 
 * ``subprocess`` (default): a fresh Python process runs the CLI; this script samples its
@@ -50,7 +50,7 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-_CLI = "import sys; from inference.cli import main; sys.exit(main(sys.argv[1:]))"
+_CLI = "import sys; from medseg.inference.cli import main; sys.exit(main(sys.argv[1:]))"
 _THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
 
@@ -77,7 +77,7 @@ def prepare(out: Path, n_images: int, size: int, seed: int) -> tuple[Path, Path]
     """A small phantom model and a folder of ``n_images`` phantom images."""
     from medseg.datasets import make_phantom_cohort
     from medseg.io import write_image
-    from medseg.model import ShapePriorSegmenter
+    from medseg.segmenter import ShapePriorSegmenter
 
     model_dir, images = out / "model", out / "images"
     if not model_dir.is_dir():
@@ -177,9 +177,8 @@ def run_subprocess(
 def run_inprocess(
     model: Path, images: Path, labels: Path, n_images: int, interval: float, threads=None
 ):
+    from medseg.inference.cli import main
     from threadpoolctl import threadpool_limits
-
-    from inference.cli import main
 
     samples, stop = [], threading.Event()
     t0 = time.perf_counter()
@@ -199,7 +198,7 @@ def run_inprocess(
     thread.join()
     wall, cpu = time.perf_counter() - t0, time.process_time() - cpu0
     if code != 0:
-        raise SystemExit(f"inference.cli.main returned {code}")
+        raise SystemExit(f"medseg.inference.cli.main returned {code}")
     print(
         f"inprocess: {n_images} images in {wall:.1f} s wall, {cpu:.1f} s CPU "
         f"({wall / n_images:.2f} s/image); load average {os.getloadavg()[0]:.1f}"

@@ -21,7 +21,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from evaluation import resolve_cohort, run_evaluation
+from medseg.evaluation import resolve_cohort, run_evaluation
 
 
 def main() -> None:

@@ -42,7 +42,8 @@ from pathlib import Path
 
 import numpy as np
 
-from medseg.matching import GeodesicSolver, face_areas, match_surfaces, read_mesh
+from medseg.geometry import GeodesicSolver, face_areas
+from medseg.matching import match_surfaces, read_mesh
 
 THRESHOLDS = (0.0, 0.025, 0.05, 0.075, 0.1, 0.15, 0.2, 0.25)
 SETS = ("FAUST", "TOSCA_Isometric")

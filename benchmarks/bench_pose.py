@@ -4,10 +4,10 @@ Usage::
 
     python benchmarks/bench_pose.py [--model MODEL] [--angles 15,30] [--out pose.json]
 
-Trains the default :class:`~medseg.model.ShapePriorSegmenter` on the first phantom subjects
+Trains the default :class:`~medseg.segmenter.ShapePriorSegmenter` on the first phantom subjects
 (the demo's split: 15 of 20, seed 0), unless ``--model`` gives a model trained on that
 cohort. Each held-out image is segmented as it is and under a random similarity of each
-angle (``evaluation.perturbation.random_similarity``: a rotation about a random axis and a
+angle (``medseg.evaluation.perturbation.random_similarity``: a rotation about a random axis and a
 scale of up to 1.25, resampled on the image's own grid), with no initialisation of any
 kind. The landmarks of the moved image are compared with those of the original, mapped
 through the same similarity; a voxel is the largest spacing.
@@ -28,11 +28,11 @@ from pathlib import Path
 
 import numpy as np
 import SimpleITK as sitk
+from medseg.evaluation.perturbation import perturb_case, random_similarity
 
-from evaluation.perturbation import perturb_case, random_similarity
 from medseg.datasets import make_phantom_cohort
 from medseg.io import voxel_to_physical
-from medseg.model import ShapePriorSegmenter, load_model
+from medseg.segmenter import ShapePriorSegmenter, load_model
 
 
 def _centre(label: sitk.Image) -> np.ndarray:

@@ -5,13 +5,14 @@ from __future__ import annotations
 import argparse
 from collections.abc import Sequence
 
-from medseg._cli import EXIT_OK, parse_labels, run_cli, show_progress
+from medseg._cli import EXIT_OK, parse_labels, run_cli
 from medseg.errors import MedsegError
+from medseg.progress import show_progress
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from evaluation.evaluate import DEFAULT_PERTURBATION
-    from evaluation.methods import METHOD_NAMES
+    from medseg.evaluation.evaluate import DEFAULT_PERTURBATION
+    from medseg.evaluation.methods import METHOD_NAMES
 
     parser = argparse.ArgumentParser(
         prog="medseg-evaluate",
@@ -96,7 +97,8 @@ def _angles(text: str) -> tuple[float, ...]:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from evaluation.evaluate import run_evaluation
+    from medseg.evaluation.evaluate import run_evaluation
+
     from medseg.datasets import make_phantom_cohort
 
     dataset = args.dataset

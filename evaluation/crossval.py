@@ -27,15 +27,16 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from medseg.evaluation.methods import MethodSpec
+from medseg.evaluation.metrics import landmark_errors, score_segmentation
+from medseg.evaluation.perturbation import perturb_case, random_similarity
+from medseg.evaluation.references import fold_landmarks
 from sklearn.model_selection import GroupKFold, LeaveOneGroupOut
 from tqdm.auto import tqdm
 
-from evaluation.methods import MethodSpec
-from evaluation.metrics import landmark_errors, score_segmentation
-from evaluation.perturbation import perturb_case, random_similarity
-from evaluation.references import fold_landmarks
 from medseg.errors import CohortError, LabelError, MedsegError
 from medseg.io import atomic_write, read_image, select_labels, write_image
+from medseg.segmenter import MIN_TRAINING_CASES
 
 __all__ = [
     "COLUMNS",
@@ -69,9 +70,6 @@ _FLOAT_COLUMNS = COLUMNS[4:]
 
 #: How long to wait for a Dask scheduler before giving up.
 DASK_CONNECT_TIMEOUT = "20s"
-
-#: Fewest training cases a fold may have (the segmenter's and the ASM's minimum).
-MIN_TRAINING_CASES = 5
 
 
 # ----------------------------------------------------------------------------- folds

@@ -15,14 +15,15 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
+from medseg.evaluation.metrics import landmark_errors, score_segmentation
 from tqdm.auto import tqdm
 
-from evaluation.metrics import landmark_errors, score_segmentation
-from medseg._cli import EXIT_OK, run_cli, show_progress
+from medseg._cli import EXIT_OK, run_cli
 from medseg.datasets import make_phantom_cohort, write_cohort
 from medseg.errors import MedsegError
 from medseg.io import select_labels, write_image
-from medseg.model import ShapePriorSegmenter
+from medseg.progress import show_progress
+from medseg.segmenter import ShapePriorSegmenter
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -13,10 +13,10 @@ from collections.abc import Iterable, Sequence
 from pathlib import Path
 
 import numpy as np
+from medseg.evaluation.crossval import check_cohort, run_folds
+from medseg.evaluation.methods import METHOD_NAMES, MethodSpec, default_methods, resolve_methods
+from medseg.evaluation.report import write_report
 
-from evaluation.crossval import check_cohort, run_folds
-from evaluation.methods import METHOD_NAMES, MethodSpec, default_methods, resolve_methods
-from evaluation.report import write_report
 from medseg.errors import CohortError
 
 __all__ = ["run_evaluation", "resolve_cohort", "DEFAULT_PERTURBATION"]
@@ -82,7 +82,7 @@ def run_evaluation(
         MSD / nnU-Net folder, CSV manifest, in-memory cohort, or the synthetic phantom.
     output_dir : path
         Report folder: ``cases.csv``, ``run.json``, ``predictions/``, ``summary.md``,
-        ``summary.json`` and the figures (see :func:`evaluation.report.write_report`).
+        ``summary.json`` and the figures (see :func:`medseg.evaluation.report.write_report`).
         Rerunning on the same folder resumes: finished (fold, method, case, angle) rows are
         kept and not recomputed.
     folds : "loo" or int, default "loo"

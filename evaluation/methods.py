@@ -66,9 +66,9 @@ def default_methods(
     Parameters
     ----------
     names : iterable of {"shape_prior", "detection", "asm"}
-        "shape_prior" is :class:`medseg.model.ShapePriorSegmenter`; "detection" the same
+        "shape_prior" is :class:`medseg.segmenter.ShapePriorSegmenter`; "detection" the same
         fitted model with ``use_prior=False`` (each landmark at its best candidate, same
-        TPS); "asm" the active shape model baseline of :mod:`evaluation.baselines.asm`.
+        TPS); "asm" the active shape model baseline of :mod:`medseg.evaluation.baselines.asm`.
     labels : sequence of int
         Labels forming the structure (their union).
     n_landmarks : int or None
@@ -89,13 +89,13 @@ def default_methods(
     if "detection" in names:
         seg_variants["detection"] = {"use_prior": False}
     if seg_variants:
-        from medseg.model import ShapePriorSegmenter
+        from medseg.segmenter import ShapePriorSegmenter
 
         params = {"n_landmarks": n_landmarks, "labels": tuple(labels)}
         params.update(segmenter_params or {})
         specs.append(MethodSpec(ShapePriorSegmenter, params, seg_variants))
     if "asm" in names:
-        from evaluation.baselines import ASMBaseline
+        from medseg.evaluation.baselines import ASMBaseline
 
         params = {"labels": tuple(labels)}
         params.update(asm_params or {})

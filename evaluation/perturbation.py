@@ -18,6 +18,7 @@ from numpy.typing import ArrayLike
 from scipy.spatial.transform import Rotation
 from sklearn.utils import check_random_state
 
+from medseg.errors import ParameterError
 from medseg.io import resample_like, voxel_to_physical
 
 __all__ = ["PoseChange", "random_similarity", "perturb_case", "MAX_ROTATION_DEG", "MAX_SCALE"]
@@ -75,9 +76,9 @@ def random_similarity(
     PoseChange
     """
     if not 0.0 <= angle_deg <= max_angle_deg:
-        raise ValueError(f"`angle_deg` must be in [0, {max_angle_deg}], got {angle_deg}")
+        raise ParameterError(f"`angle_deg` must be in [0, {max_angle_deg}], got {angle_deg}")
     if max_scale < 1.0:
-        raise ValueError("`max_scale` must be >= 1.")
+        raise ParameterError("`max_scale` must be >= 1.")
     rng = check_random_state(random_state)
     axis = rng.standard_normal(3)
     axis /= np.linalg.norm(axis)

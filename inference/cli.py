@@ -9,10 +9,11 @@ from pathlib import Path
 
 from tqdm.auto import tqdm
 
-from medseg._cli import EXIT_FAILURE, EXIT_OK, naming, run_cli, show_progress
+from medseg._cli import EXIT_FAILURE, EXIT_OK, naming, run_cli
 from medseg.errors import InputFileError, MedsegError
 from medseg.io import IMAGE_SUFFIXES, atomic_write, image_suffix, write_image, write_landmarks
-from medseg.model import ShapePriorSegmenter, load_model
+from medseg.progress import show_progress
+from medseg.segmenter import ShapePriorSegmenter, load_model
 
 LANDMARK_FORMATS = {"mrk.json": ".mrk.json", "fcsv": ".fcsv", "csv": ".csv"}
 SURFACE_FORMATS = ("vtk", "vtp", "stl", "ply")

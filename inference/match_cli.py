@@ -9,9 +9,10 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from medseg._cli import run_cli, show_progress
+from medseg._cli import run_cli
 from medseg.io import atomic_write, check_not_protected
 from medseg.matching import check_mesh, match_surfaces, read_mesh
+from medseg.progress import show_progress
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -8,9 +8,8 @@ after Zeng, Wang, Wang, Gu, Samaras & Paragios (CVPR 2010).
 >>> seg = model.segment("case.nii.gz")                # doctest: +SKIP
 """
 
+from medseg._version import __version__
 from medseg.errors import MedsegError
-
-__version__ = "0.1.0"
 
 __all__ = ["MedsegError", "ShapePriorSegmenter", "Segmentation", "load_model", "__version__"]
 
@@ -20,7 +19,7 @@ _LAZY = {"ShapePriorSegmenter", "Segmentation", "load_model"}
 def __getattr__(name: str):
     # The segmenter pulls in scikit-learn, pyvista, ...: import it on first use only.
     if name in _LAZY:
-        from medseg import model
+        from medseg import segmenter
 
-        return getattr(model, name)
+        return getattr(segmenter, name)
     raise AttributeError(f"module 'medseg' has no attribute {name!r}")

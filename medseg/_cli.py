@@ -1,4 +1,8 @@
-"""Shared plumbing for the command-line tools: one-line errors, exit codes, progress."""
+"""Shared plumbing for the command-line tools: one-line errors, exit codes, argument types.
+
+Only the stage packages (``medseg.training``, ``medseg.inference``, ``medseg.evaluation``)
+and ``python -m`` entry points import this; the library's parts do not (an import contract).
+"""
 
 from __future__ import annotations
 
@@ -35,11 +39,6 @@ def run_cli(
     except KeyboardInterrupt:
         print(f"{parser.prog}: interrupted", file=sys.stderr)
         return 130
-
-
-def show_progress(quiet: bool = False) -> bool:
-    """Whether tqdm progress bars should be shown: on a terminal and not ``--quiet``."""
-    return (not quiet) and sys.stderr.isatty()
 
 
 def parse_labels(text: str) -> tuple[int, ...]:

@@ -41,7 +41,8 @@ from skimage.measure import marching_cubes, mesh_surface_area
 from sklearn.utils import check_random_state
 from threadpoolctl import threadpool_limits
 
-from medseg._registration import (
+from medseg.errors import CohortError, LabelError, MeshError
+from medseg.geometry import (
     Similarity,
     cpd_nonrigid,
     farthest_point_sampling,
@@ -49,7 +50,6 @@ from medseg._registration import (
     icp_similarity,
     principal_axes_candidates,
 )
-from medseg.errors import CohortError, LabelError, MeshError
 from medseg.io import read_image, select_labels, voxel_to_physical
 
 __all__ = [

@@ -24,7 +24,7 @@ import SimpleITK as sitk
 from sklearn.utils import check_random_state
 
 from medseg._phantom import make_phantom_case, phantom_landmark_index
-from medseg.errors import CohortError, InputFileError, LabelError
+from medseg.errors import CohortError, InputFileError, LabelError, ParameterError
 from medseg.io import (
     atomic_folder,
     read_image,
@@ -537,14 +537,14 @@ def make_phantom_cohort(
     (2, (30, 3))
     """
     if int(n_subjects) < 1:
-        raise ValueError(f"`n_subjects` must be at least 1, got {n_subjects}")
+        raise ParameterError(f"`n_subjects` must be at least 1, got {n_subjects}")
     if not 3 <= int(n_landmarks) <= int(n_surface_points):
-        raise ValueError(
+        raise ParameterError(
             f"`n_landmarks` must be between 3 and n_surface_points={n_surface_points}, "
             f"got {n_landmarks}"
         )
     if not 0 < scale_range[0] <= scale_range[1]:
-        raise ValueError(f"`scale_range` must be 0 < low <= high, got {scale_range}")
+        raise ParameterError(f"`scale_range` must be 0 < low <= high, got {scale_range}")
     rng = check_random_state(random_state)
     seeds = rng.randint(0, np.iinfo(np.int32).max, size=int(n_subjects))
     landmark_index = phantom_landmark_index(int(n_landmarks), int(n_surface_points))

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 __all__ = [
     "MedsegError",
+    "ParameterError",
     "InputFileError",
     "ImageFormatError",
     "ImageGeometryError",
@@ -25,6 +26,15 @@ __all__ = [
 
 class MedsegError(Exception):
     """Base class of every error medseg raises for bad input or bad use."""
+
+
+class ParameterError(MedsegError, ValueError):
+    """A parameter or argument has a value that cannot be used (wrong range, shape or choice).
+
+    Also a ``ValueError``, as scikit-learn and numpy raise for bad arguments, so code that
+    catches ``ValueError`` keeps working; estimators raise it from ``fit`` (their
+    ``__init__`` only stores).
+    """
 
 
 class InputFileError(MedsegError):

@@ -24,7 +24,7 @@ from numpy.typing import ArrayLike
 from scipy.interpolate import RBFInterpolator
 from scipy.ndimage import map_coordinates
 
-from medseg.errors import ImageGeometryError, LabelError
+from medseg.errors import ImageGeometryError, LabelError, ParameterError
 from medseg.io import physical_to_voxel, voxel_to_physical
 
 __all__ = ["ThinPlateSpline", "check_distinct_landmarks", "warp_mask", "warp_surface"]
@@ -58,7 +58,7 @@ class ThinPlateSpline:
                 "a 3D thin-plate spline needs at least 4 landmarks that are not coplanar"
             )
         if smoothing < 0:
-            raise ValueError("`smoothing` must be >= 0.")
+            raise ParameterError("`smoothing` must be >= 0.")
         if smoothing == 0:
             check_distinct_landmarks(source, "source landmarks")
         # Interpolate the displacement, so the affine part and far field stay well behaved.

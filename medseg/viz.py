@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import SimpleITK as sitk
 
-from medseg.errors import ImageGeometryError, InputFileError, MedsegError
+from medseg.errors import ImageGeometryError, InputFileError, MedsegError, ParameterError
 from medseg.io import atomic_write, physical_to_voxel, read_image, read_label
 
 __all__ = ["plot_slice", "save_slice_png", "save_cohort_png", "main"]
@@ -38,7 +38,9 @@ def _slice_arrays(
     if image.GetDimension() != 3:
         raise ImageGeometryError(f"save_slice_png needs a 3D image, got {image.GetDimension()}D")
     if axis not in _AXIS_NAMES:
-        raise ValueError(f"`axis` must be 0 (z), 1 (y) or 2 (x) of the (z, y, x) array, not {axis}")
+        raise ParameterError(
+            f"`axis` must be 0 (z), 1 (y) or 2 (x) of the (z, y, x) array, not {axis}"
+        )
     array = sitk.GetArrayViewFromImage(image)
     lab = None
     if label is not None:
@@ -56,7 +58,9 @@ def _slice_arrays(
         else:
             index = array.shape[axis] // 2
     if not 0 <= index < array.shape[axis]:
-        raise ValueError(f"`index` {index} is outside 0..{array.shape[axis] - 1} along axis {axis}")
+        raise ParameterError(
+            f"`index` {index} is outside 0..{array.shape[axis] - 1} along axis {axis}"
+        )
     image2d = np.take(array, index, axis=axis)
     label2d = None if lab is None else np.take(lab, index, axis=axis)
     spacing_zyx = np.asarray(image.GetSpacing())[::-1]

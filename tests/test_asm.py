@@ -5,14 +5,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import SimpleITK as sitk
+from medseg.evaluation.baselines import ASMBaseline
+from medseg.evaluation.metrics import dice, landmark_errors
 from scipy.spatial.transform import Rotation
 
-from evaluation.baselines import ASMBaseline
-from evaluation.metrics import dice, landmark_errors
 from medseg.datasets import Cohort, make_phantom_cohort
 from medseg.errors import CohortError, NotFittedError
+from medseg.geometry import vertex_normals
 from medseg.io import select_labels, voxel_to_physical
-from medseg.shape import ActiveShapeModel, landmark_mesh, point_distribution_model, vertex_normals
+from medseg.shape import ActiveShapeModel, landmark_mesh, point_distribution_model
 
 
 def _sphere_points(n: int) -> np.ndarray:

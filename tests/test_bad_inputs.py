@@ -25,10 +25,11 @@ import pytest
 import SimpleITK as sitk
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from medseg.evaluation.cli import main as evaluate_main
+from medseg.inference.cli import main as segment_main
+from medseg.inference.match_cli import main as match_main
+from medseg.training.cli import main as train_main
 
-from evaluation.cli import main as evaluate_main
-from inference.cli import main as segment_main
-from inference.match_cli import main as match_main
 from medseg import io as mio
 from medseg.datasets import make_phantom_cohort, write_cohort
 from medseg.errors import (
@@ -40,8 +41,7 @@ from medseg.errors import (
     MeshError,
 )
 from medseg.matching import read_mesh, write_mesh
-from medseg.model import ShapePriorSegmenter, load_model
-from training.cli import main as train_main
+from medseg.segmenter import ShapePriorSegmenter, load_model
 
 REPO = Path(__file__).resolve().parents[1]
 SIZE = 40
@@ -235,7 +235,7 @@ def test_bad_image_as_a_real_process(bad_images, tiny, tmp_path):
     """The installed entry point's code path in a fresh interpreter: exit 2, one line."""
     path = bad_images["nan_inf_voxels.nii.gz"][0]
     out = tmp_path / "o.nii.gz"
-    script = "import sys; from inference.cli import main; sys.exit(main())"
+    script = "import sys; from medseg.inference.cli import main; sys.exit(main())"
     argv = [sys.executable, "-c", script, "-m", str(tiny[0]), "-i", str(path), "-o", str(out)]
     done = subprocess.run(argv, capture_output=True, text=True, cwd=REPO, timeout=120)
     assert done.returncode == 2, done.stderr

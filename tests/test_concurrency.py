@@ -22,15 +22,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 import SimpleITK as sitk
+from medseg.evaluation.crossval import COLUMNS, read_results
+from medseg.inference.cli import main as segment_main
 
-from evaluation.crossval import COLUMNS, read_results
-from inference.cli import main as segment_main
 from medseg.datasets import make_phantom_cohort
 from medseg.io import read_image, read_landmarks, write_image
-from medseg.model import ShapePriorSegmenter
+from medseg.segmenter import ShapePriorSegmenter
 
 REPO = Path(__file__).resolve().parents[1]
-SEGMENT = "import sys; from inference.cli import main; sys.exit(main(sys.argv[1:]))"
+SEGMENT = "import sys; from medseg.inference.cli import main; sys.exit(main(sys.argv[1:]))"
 
 
 def _env() -> dict:
@@ -190,8 +190,8 @@ EVALUATE = textwrap.dedent(
     import numpy as np
     import SimpleITK as sitk
 
-    from evaluation.evaluate import run_evaluation
-    from evaluation.methods import MethodSpec
+    from medseg.evaluation.evaluate import run_evaluation
+    from medseg.evaluation.methods import MethodSpec
 
 
     class _Result:

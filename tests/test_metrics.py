@@ -7,10 +7,10 @@ import math
 import numpy as np
 import pytest
 import SimpleITK as sitk
+from medseg.evaluation.metrics import assd, dice, hd95, landmark_errors, score_segmentation
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from evaluation.metrics import assd, dice, hd95, landmark_errors, score_segmentation
 from medseg.errors import ImageGeometryError
 from medseg.io import voxel_to_physical
 

@@ -11,14 +11,14 @@ import nibabel as nib
 import numpy as np
 import pytest
 import SimpleITK as sitk
+from medseg.inference.cli import main as segment_main
+from medseg.training.cli import main as train_main
 
 import medseg
-from inference.cli import main as segment_main
 from medseg.datasets import make_phantom_cohort, write_cohort
 from medseg.errors import CohortError, ModelFileError, NotFittedError
 from medseg.io import image_geometry, read_image, read_landmarks
-from medseg.model import ShapePriorSegmenter, load_model
-from training.cli import main as train_main
+from medseg.segmenter import ShapePriorSegmenter, load_model
 
 SMALL = dict(n_landmarks=12, size=48)
 
@@ -63,9 +63,9 @@ def test_inference_after_detection_assumes_no_pose(fitted, cohort):
     solver give the identical choice. Not asserted: the handedness term and the active-shape
     refinement, which read the resampled image (its gradients and profiles move a little
     with the interpolation), nor detection; they are measured by the perturbation study."""
+    from medseg.evaluation.perturbation import PoseChange, perturb_case
     from scipy.spatial.transform import Rotation
 
-    from evaluation.perturbation import PoseChange, perturb_case
     from medseg.detection import CandidateSet
     from medseg.io import physical_to_voxel
 
@@ -354,7 +354,7 @@ def test_segmentation_renders_for_a_notebook(fitted, cohort):
 def test_one_shared_candidate_is_refined_a_collapse_is_refused():
     """Two landmarks on one candidate (seen on 1 of 199 hippocampus cases) is an ambiguity
     the shape model resolves; landmarks piled on a few positions (a blank image) are not."""
-    from medseg.model import _collapsed
+    from medseg.segmenter._hypotheses import collapsed as _collapsed
 
     rng = np.random.default_rng(0)
     points = rng.normal(size=(12, 3)) * 10

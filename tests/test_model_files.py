@@ -22,13 +22,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 import skops.io as sio
+from medseg.inference.cli import main as segment_main
 from test_bad_inputs import _tiny
 
-from inference.cli import main as segment_main
-from medseg import _io_archive
 from medseg.detection import LandmarkDetector
 from medseg.errors import InputFileError, ModelFileError
-from medseg.model import load_model
+from medseg.io import _archive as _io_archive
+from medseg.segmenter import load_model
 
 
 @pytest.fixture(scope="session")
@@ -172,7 +172,7 @@ def test_archive_limit_is_applied_to_the_whole_model(forged, monkeypatch, no_unp
     sizes = [_io_archive.check_archive(forged / name) for name in
              ("template.npz", "prior.npz", "detector/forests.skops")]  # fmt: skip
     monkeypatch.setattr(_io_archive, "MAX_UNPACKED_BYTES", max(sizes) + 1)
-    import medseg._model_io as model_io
+    from medseg.segmenter import _persistence as model_io
 
     monkeypatch.setattr(model_io, "MAX_UNPACKED_BYTES", sum(sizes) - 1)
     with pytest.raises(ModelFileError, match="archives declare"):
@@ -244,7 +244,7 @@ def test_model_folder_too_large_on_disk_is_refused_before_hashing(forged, monkey
     def no_hashing(path):
         raise AssertionError(f"hashed {path} before checking the folder's size")
 
-    import medseg._model_io as model_io
+    from medseg.segmenter import _persistence as model_io
 
     monkeypatch.setattr(model_io, "_sha256", no_hashing)
     with pytest.raises(ModelFileError, match="refusing to load"):

@@ -8,12 +8,12 @@ import math
 
 import numpy as np
 import pytest
+from medseg.evaluation import run_evaluation
+from medseg.evaluation.crossval import COLUMNS
+from medseg.evaluation.methods import MethodSpec
+from medseg.evaluation.report import summarise, write_report
 from test_crossval import ThresholdMethod, tiny_cohort
 
-from evaluation import run_evaluation
-from evaluation.crossval import COLUMNS
-from evaluation.methods import MethodSpec
-from evaluation.report import summarise, write_report
 from medseg.datasets import Cohort
 from medseg.errors import CohortError, InputFileError, LabelError
 

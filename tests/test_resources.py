@@ -13,12 +13,13 @@ import numpy as np
 import pytest
 import SimpleITK as sitk
 
-from medseg._resources import (
+from medseg.datasets import make_phantom_cohort
+from medseg.detection import FeatureSettings, compute_features, detection_bytes, feature_map_bytes
+from medseg.errors import ResourceLimitError
+from medseg.memory import (
     DEFAULT_FRACTION,
     ENV_VAR,
     check_memory,
-    detection_bytes,
-    feature_map_bytes,
     memory_limit_bytes,
     orientation_table_bytes,
     physical_memory_bytes,
@@ -26,11 +27,8 @@ from medseg._resources import (
     solver_bytes,
     triplet_mrf_bytes,
 )
-from medseg.datasets import make_phantom_cohort
-from medseg.detection import FeatureSettings, compute_features
-from medseg.errors import ResourceLimitError
-from medseg.model import ShapePriorSegmenter
 from medseg.mrf import MRF, solve
+from medseg.segmenter import ShapePriorSegmenter
 from medseg.shape import OrientationPrior, TripletPrior
 
 # an estimate within this factor of the measured peak, either way

@@ -335,7 +335,7 @@ def test_same_seed_gives_the_same_prior():
 
 def test_mean_shape_is_similar_to_the_underlying_configuration(fitted):
     base, _, priors = fitted
-    from medseg._registration import similarity_fit
+    from medseg.geometry import similarity_fit
 
     mean = priors["distance"].mean_shape_
     tf = similarity_fit(base, mean)

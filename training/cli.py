@@ -14,10 +14,10 @@ from medseg._cli import (
     parse_labels,
     positive_int,
     run_cli,
-    show_progress,
 )
 from medseg.datasets import load_cohort, make_phantom_cohort
-from medseg.model import ShapePriorSegmenter
+from medseg.progress import show_progress
+from medseg.segmenter import ShapePriorSegmenter
 
 # The model's own defaults, so the command line and the Python API cannot drift apart.
 _DEFAULT = {

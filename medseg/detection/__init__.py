@@ -8,6 +8,7 @@ from medseg.detection._candidates import CandidateSet, non_maximum_suppression, 
 from medseg.detection._detector import LandmarkDetector
 from medseg.detection._directions import gradient_directions
 from medseg.detection._features import FeatureSettings, compute_features, feature_names
+from medseg.detection._memory import detection_bytes, feature_map_bytes
 from medseg.detection._persistence import load_detector, save_detector
 from medseg.detection._sampling import LandmarkSamples, sample_landmark_voxels
 
@@ -17,6 +18,8 @@ __all__ = [
     "LandmarkDetector",
     "LandmarkSamples",
     "compute_features",
+    "detection_bytes",
+    "feature_map_bytes",
     "feature_names",
     "gradient_directions",
     "load_detector",

@@ -38,6 +38,8 @@ from scipy.spatial.distance import pdist
 from sklearn.cluster import KMeans
 from sklearn.utils import check_random_state
 
+from medseg.geometry import procrustes_mean
+
 __all__ = ["landmark_groups", "context_radii", "context_features", "context_names"]
 
 # Relative half-width of a shell: subjects differ in size, so a landmark at distance d in one
@@ -60,8 +62,6 @@ def landmark_groups(shapes: np.ndarray, n_groups: int, *, random_state=None) -> 
     (N,) int array
         Group of each landmark, ``0 .. n_groups - 1``.
     """
-    from medseg.shape._prior import procrustes_mean
-
     shapes = np.asarray(shapes, dtype=float)
     complete = shapes[np.isfinite(shapes).all(axis=(1, 2))]
     reference = procrustes_mean(complete) if len(complete) >= 2 else np.nan_to_num(shapes[0])

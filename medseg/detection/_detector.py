@@ -11,8 +11,6 @@ from sklearn.ensemble import ExtraTreesClassifier, RandomForestClassifier
 from sklearn.utils import check_random_state
 from tqdm.auto import tqdm
 
-from medseg._cli import show_progress
-from medseg._resources import check_memory, feature_map_bytes
 from medseg.detection._candidates import CandidateSet, non_maximum_suppression, subvoxel_peak
 from medseg.detection._context import (
     context_features,
@@ -21,6 +19,7 @@ from medseg.detection._context import (
     landmark_groups,
 )
 from medseg.detection._features import FeatureSettings, compute_features, feature_names
+from medseg.detection._memory import feature_map_bytes
 from medseg.detection._sampling import sample_landmark_voxels
 from medseg.errors import (
     CohortError,
@@ -31,6 +30,8 @@ from medseg.errors import (
     NotFittedError,
 )
 from medseg.io import voxel_to_physical
+from medseg.memory import check_memory
+from medseg.progress import show_progress
 
 __all__ = ["LandmarkDetector"]
 

@@ -20,10 +20,10 @@ import numpy as np
 import skops.io as sio
 from sklearn.ensemble import ExtraTreesClassifier, RandomForestClassifier
 
-from medseg._io_archive import check_archive
 from medseg.detection._features import FeatureSettings
 from medseg.errors import InputFileError, MedsegError, ModelFileError, NotFittedError
 from medseg.io import atomic_folder
+from medseg.io._archive import check_archive
 
 __all__ = ["save_detector", "load_detector", "FORMAT_NAME", "FORMAT_VERSION"]
 

@@ -1,4 +1,8 @@
-"""Dense non-rigid surface matching with third-order graph matching (Zeng et al., CVPR 2010)."""
+"""Dense non-rigid surface matching with third-order graph matching (Zeng et al., CVPR 2010).
+
+Mesh primitives (areas, normals, the Laplacian, geodesics, sampling) are in
+:mod:`medseg.geometry`.
+"""
 
 from medseg.matching._conformal import (
     CANONICAL_TRIPLET,
@@ -12,17 +16,10 @@ from medseg.matching._conformal import (
     to_riemann_sphere,
 )
 from medseg.matching._geometry import (
-    GeodesicSolver,
-    cotangent_laplacian,
-    face_areas,
-    face_normals,
-    farthest_point_sampling,
     gaussian_curvature,
     heat_kernel_signature,
     laplacian_eigenpairs,
     mirrored_fraction,
-    vertex_areas,
-    vertex_normals,
     wave_kernel_signature,
 )
 from medseg.matching._matcher import (
@@ -63,16 +60,11 @@ __all__ = [
     "triplet_potentials",
     "CANONICAL_TRIPLET",
     "MESH_SUFFIXES",
-    "GeodesicSolver",
     "apply_mobius",
     "check_mesh",
     "close_holes",
     "compose_mobius",
     "conformal_flatten",
-    "cotangent_laplacian",
-    "face_areas",
-    "face_normals",
-    "farthest_point_sampling",
     "gaussian_curvature",
     "heat_kernel_signature",
     "invert_mobius",
@@ -82,8 +74,6 @@ __all__ = [
     "mobius_to_canonical",
     "read_mesh",
     "to_riemann_sphere",
-    "vertex_areas",
-    "vertex_normals",
     "wave_kernel_signature",
     "write_mesh",
 ]

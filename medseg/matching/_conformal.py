@@ -19,7 +19,7 @@ from numpy.typing import ArrayLike
 from scipy.sparse.linalg import splu
 
 from medseg.errors import MeshError, ProblemDefinitionError
-from medseg.matching._geometry import cotangent_laplacian, face_areas
+from medseg.geometry import cotangent_laplacian, face_areas
 
 __all__ = [
     "CANONICAL_TRIPLET",

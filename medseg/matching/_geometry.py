@@ -1,5 +1,7 @@
-"""Differential geometry of triangle meshes: areas, normals, curvature, Laplacian, HKS,
-geodesics and farthest-point sampling.
+"""Intrinsic descriptors of triangle meshes for matching: curvature, Laplace-Beltrami
+eigenpairs, heat and wave kernel signatures, and the mirror test of a vertex map.
+
+Areas, normals, the Laplacian, geodesics and sampling are :mod:`medseg.geometry`'s.
 
 All functions take ``vertices`` (V, 3) float and ``faces`` (F, 3) int arrays that passed
 :func:`medseg.matching.check_mesh`; lengths are in the mesh's units.
@@ -8,62 +10,18 @@ All functions take ``vertices`` (V, 3) float and ``faces`` (F, 3) int arrays tha
 from __future__ import annotations
 
 import numpy as np
-import potpourri3d as pp3d
-import scipy.sparse as sp
 from numpy.typing import ArrayLike
 from scipy.sparse.linalg import eigsh
-from sklearn.utils import check_random_state
+
+from medseg.geometry import cotangent_laplacian, face_areas, vertex_areas
 
 __all__ = [
-    "face_areas",
-    "face_normals",
-    "vertex_areas",
-    "vertex_normals",
     "gaussian_curvature",
-    "cotangent_laplacian",
     "laplacian_eigenpairs",
     "heat_kernel_signature",
     "wave_kernel_signature",
-    "GeodesicSolver",
-    "farthest_point_sampling",
     "mirrored_fraction",
 ]
-
-
-def _corners(vertices: np.ndarray, faces: np.ndarray):
-    return vertices[faces[:, 0]], vertices[faces[:, 1]], vertices[faces[:, 2]]
-
-
-def face_areas(vertices: ArrayLike, faces: ArrayLike) -> np.ndarray:
-    """Area of each triangle, (F,) float array in squared mesh units."""
-    p0, p1, p2 = _corners(np.asarray(vertices, float), np.asarray(faces))
-    return 0.5 * np.linalg.norm(np.cross(p1 - p0, p2 - p0), axis=1)
-
-
-def face_normals(vertices: ArrayLike, faces: ArrayLike) -> np.ndarray:
-    """Unit normal of each triangle (right-hand rule on the face order), (F, 3) float array."""
-    p0, p1, p2 = _corners(np.asarray(vertices, float), np.asarray(faces))
-    n = np.cross(p1 - p0, p2 - p0)
-    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
-
-
-def vertex_areas(vertices: ArrayLike, faces: ArrayLike) -> np.ndarray:
-    """Barycentric (lumped) vertex area: a third of the adjacent triangles' areas, (V,)."""
-    faces = np.asarray(faces)
-    a = face_areas(vertices, faces)
-    return np.bincount(faces.ravel(), weights=np.repeat(a / 3.0, 3), minlength=len(vertices))
-
-
-def vertex_normals(vertices: ArrayLike, faces: ArrayLike) -> np.ndarray:
-    """Area-weighted unit vertex normals, (V, 3) float array."""
-    vertices = np.asarray(vertices, float)
-    faces = np.asarray(faces)
-    p0, p1, p2 = _corners(vertices, faces)
-    n = np.cross(p1 - p0, p2 - p0)  # length = 2 * area
-    out = np.zeros_like(vertices)
-    for c in range(3):
-        np.add.at(out, faces[:, c], n)
-    return out / np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-300)
 
 
 def _corner_angles(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -98,50 +56,6 @@ def gaussian_curvature(vertices: ArrayLike, faces: ArrayLike) -> np.ndarray:
     ang = _corner_angles(vertices, faces)
     total = np.bincount(faces.ravel(), weights=ang.ravel(), minlength=len(vertices))
     return (2 * np.pi - total) / vertex_areas(vertices, faces)
-
-
-def cotangent_laplacian(
-    vertices: ArrayLike, faces: ArrayLike
-) -> tuple[sp.csr_matrix, sp.dia_matrix]:
-    """Cotangent Laplacian (stiffness) and lumped mass matrix.
-
-    Parameters
-    ----------
-    vertices : (V, 3) float array
-    faces : (F, 3) int array
-
-    Returns
-    -------
-    L : (V, V) sparse CSR matrix
-        Symmetric positive semi-definite: ``L[i, j] = -(cot a + cot b) / 2`` on edges,
-        rows sum to zero. ``M^{-1} L`` approximates minus the Laplace-Beltrami operator.
-    M : (V, V) sparse diagonal matrix
-        Barycentric vertex areas.
-
-    References
-    ----------
-    .. [1] Pinkall, U. & Polthier, K. "Computing discrete minimal surfaces and their
-       conjugates." Experimental Mathematics 2(1), 1993. doi:10.1080/10586458.1993.10504266
-    """
-    vertices = np.asarray(vertices, float)
-    faces = np.asarray(faces)
-    n = len(vertices)
-    rows, cols, vals = [], [], []
-    for c in range(3):
-        i, j, k = faces[:, c], faces[:, (c + 1) % 3], faces[:, (c + 2) % 3]
-        u = vertices[i] - vertices[k]
-        w = vertices[j] - vertices[k]
-        cot = np.einsum("ij,ij->i", u, w) / np.maximum(
-            np.linalg.norm(np.cross(u, w), axis=1), 1e-300
-        )
-        rows += [i, j]
-        cols += [j, i]
-        vals += [-0.5 * cot, -0.5 * cot]
-    off = sp.coo_matrix(
-        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n)
-    ).tocsr()
-    lap = off - sp.diags(np.asarray(off.sum(axis=1)).ravel())
-    return lap.tocsr(), sp.diags(vertex_areas(vertices, faces))
 
 
 def laplacian_eigenpairs(
@@ -255,96 +169,6 @@ def wave_kernel_signature(
     s = sigma * (energies[1] - energies[0]) if len(energies) > 1 else 1.0
     weights = np.exp(-((energies[None, :] - log_l[:, None]) ** 2) / (2 * s**2))  # (K, E)
     return (evecs**2) @ weights / np.maximum(weights.sum(axis=0, keepdims=True), 1e-300)
-
-
-class GeodesicSolver:
-    """Geodesic distances on a mesh by the heat method (potpourri3d), factorised once.
-
-    Parameters
-    ----------
-    vertices : (V, 3) float array
-    faces : (F, 3) int array
-
-    References
-    ----------
-    .. [1] Crane, K., Weischedel, C. & Wardetzky, M. "Geodesics in heat." ACM TOG 32(5),
-       2013. doi:10.1145/2516971.2516977
-    """
-
-    def __init__(self, vertices: ArrayLike, faces: ArrayLike):
-        self._vertices = np.asarray(vertices, float)
-        self._faces = np.asarray(faces, np.int64)
-        self._solver = pp3d.MeshHeatMethodDistanceSolver(self._vertices, self._faces)
-        self._vector_solver = None
-
-    def log_map(self, source: int) -> np.ndarray:
-        """Logarithmic map at vertex ``source`` (vector heat method), (V, 2) mesh units.
-
-        Each vertex as a tangent vector at ``source``: its direction is the direction of the
-        geodesic from ``source`` and its length the geodesic distance, in a tangent basis
-        that turns counter-clockwise about the outward normal (faces oriented outward).
-        Reliable up to the cut locus of ``source``.
-
-        References
-        ----------
-        .. [1] Sharp, N., Soliman, Y. & Crane, K. "The vector heat method." ACM TOG 38(3),
-           2019. doi:10.1145/3243651
-        """
-        if self._vector_solver is None:
-            self._vector_solver = pp3d.MeshVectorHeatSolver(self._vertices, self._faces)
-        return np.asarray(self._vector_solver.compute_log_map(int(source)), float)
-
-    def distance(self, source: int) -> np.ndarray:
-        """Geodesic distance from vertex ``source`` to every vertex, (V,) mesh units."""
-        return np.maximum(self._solver.compute_distance(int(source)), 0.0)
-
-    def distance_multi(self, sources: ArrayLike) -> np.ndarray:
-        """Geodesic distance from the nearest of ``sources`` to every vertex, (V,)."""
-        return np.maximum(
-            self._solver.compute_distance_multisource(np.asarray(sources, np.int64).tolist()), 0.0
-        )
-
-
-def farthest_point_sampling(
-    vertices: ArrayLike,
-    faces: ArrayLike,
-    n_samples: int,
-    *,
-    geodesic: GeodesicSolver | None = None,
-    random_state=None,
-) -> np.ndarray:
-    """Farthest-point sampling in geodesic distance.
-
-    Parameters
-    ----------
-    vertices : (V, 3) float array
-    faces : (F, 3) int array
-    n_samples : int
-        Number of vertices to pick (at most V).
-    geodesic : GeodesicSolver, optional
-        Reuse a factorised solver.
-    random_state : int, RandomState or None
-        Picks the first sample.
-
-    Returns
-    -------
-    idx : (n_samples,) int array
-        Vertex indices, in the order they were picked.
-    """
-    rng = check_random_state(random_state)
-    n = len(vertices)
-    n_samples = int(min(n_samples, n))
-    solver = geodesic if geodesic is not None else GeodesicSolver(vertices, faces)
-    idx = [int(rng.randint(n))]
-    dist = solver.distance(idx[0])
-    # restart from the farthest point of a random seed, so the set does not hinge on it
-    idx = [int(np.argmax(dist))]
-    dist = solver.distance(idx[0])
-    for _ in range(1, n_samples):
-        nxt = int(np.argmax(dist))
-        idx.append(nxt)
-        dist = np.minimum(dist, solver.distance(nxt))
-    return np.asarray(idx, dtype=np.int64)
 
 
 def mirrored_fraction(

@@ -63,17 +63,19 @@ from sklearn.utils import check_random_state
 from tqdm.auto import tqdm
 
 from medseg.errors import ProblemDefinitionError
-from medseg.matching._conformal import conformal_flatten, to_riemann_sphere
-from medseg.matching._geometry import (
+from medseg.geometry import (
     GeodesicSolver,
     cotangent_laplacian,
     face_areas,
-    farthest_point_sampling,
+    geodesic_farthest_point_sampling,
+    vertex_areas,
+    vertex_normals,
+)
+from medseg.matching._conformal import conformal_flatten, to_riemann_sphere
+from medseg.matching._geometry import (
     heat_kernel_signature,
     laplacian_eigenpairs,
     mirrored_fraction,
-    vertex_areas,
-    vertex_normals,
     wave_kernel_signature,
 )
 from medseg.matching._mesh import check_mesh
@@ -198,7 +200,9 @@ def prepare_surface(
     smooth = splu((mass + 1e-3 * lap).tocsc()).solve(mass @ v)
     normals = vertex_normals(smooth, f)
     geo = GeodesicSolver(v, f)
-    samples = farthest_point_sampling(v, f, n_samples, geodesic=geo, random_state=random_state)
+    samples = geodesic_farthest_point_sampling(
+        v, f, n_samples, geodesic=geo, random_state=random_state
+    )
     z = conformal_flatten(v, f)
     return PreparedSurface(v, f, scale, z, normals, descriptor, evals, evecs, samples, geo)
 

@@ -6,7 +6,6 @@ from numbers import Integral, Real
 
 from tqdm.auto import tqdm
 
-from medseg._cli import show_progress
 from medseg.errors import ProblemDefinitionError
 from medseg.mrf._kernels import CHUNK_BYTES
 from medseg.mrf._model import MRF, check_memory
@@ -14,6 +13,7 @@ from medseg.mrf._mplp import solve_mplp
 from medseg.mrf._result import SolveResult
 from medseg.mrf._srmp import solve_srmp
 from medseg.mrf._subgradient import solve_subgradient
+from medseg.progress import show_progress
 
 __all__ = ["solve", "estimate_solver_bytes", "METHODS"]
 

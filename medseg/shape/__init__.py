@@ -13,14 +13,7 @@
   the MRF chose (and is the evaluation's baseline).
 """
 
-from medseg.shape._active_shape import (
-    ActiveShapeModel,
-    PointDistributionModel,
-    ShapeSearch,
-    landmark_mesh,
-    point_distribution_model,
-    vertex_normals,
-)
+from medseg.shape._active_shape import ActiveShapeModel, ShapeSearch
 from medseg.shape._cliques import CliqueTableSize, clique_table_size, select_cliques
 from medseg.shape._invariants import (
     relative_distances,
@@ -29,8 +22,12 @@ from medseg.shape._invariants import (
 )
 from medseg.shape._orientation import OrientationPrior, triangle_orientation
 from medseg.shape._persistence import prior_from_state, prior_state
+from medseg.shape._point_distribution import (
+    PointDistributionModel,
+    landmark_mesh,
+    point_distribution_model,
+)
 from medseg.shape._prior import MIN_TRAINING_SHAPES, TripletPrior
-from medseg.shape._procrustes import procrustes_mean
 
 __all__ = [
     "relative_distances",
@@ -43,7 +40,6 @@ __all__ = [
     "OrientationPrior",
     "triangle_orientation",
     "MIN_TRAINING_SHAPES",
-    "procrustes_mean",
     "prior_state",
     "prior_from_state",
     "ActiveShapeModel",
@@ -51,5 +47,4 @@ __all__ = [
     "PointDistributionModel",
     "point_distribution_model",
     "landmark_mesh",
-    "vertex_normals",
 ]

@@ -1,8 +1,8 @@
 """The active shape model (Cootes, Taylor, Cooper & Graham, 1995), in 3D.
 
-Used twice: as the boundary refinement of :class:`medseg.model.ShapePriorSegmenter`
+Used twice: as the boundary refinement of :class:`medseg.segmenter.ShapePriorSegmenter`
 (a search that starts from the landmarks the MRF chose) and as the standard baseline of the
-evaluation (:mod:`evaluation.baselines.asm`, a search from the image centre, as a user of
+evaluation (:mod:`medseg.evaluation.baselines.asm`, a search from the image centre, as a user of
 ASM would start it).
 
 1. **Point distribution model.** The training landmark sets are aligned by generalised
@@ -42,171 +42,28 @@ from dataclasses import dataclass
 import numpy as np
 import SimpleITK as sitk
 from scipy.ndimage import gaussian_filter, map_coordinates
-from scipy.spatial import ConvexHull
-from scipy.spatial.transform import Rotation
 from sklearn.covariance import LedoitWolf
 from tqdm.auto import tqdm
 
-from medseg.errors import CohortError, NotFittedError
+from medseg.errors import CohortError, NotFittedError, ParameterError
+from medseg.geometry import similarity_fit, vertex_normals
 from medseg.io import physical_to_voxel, voxel_to_physical
+from medseg.shape._point_distribution import landmark_mesh, point_distribution_model
+from medseg.shape._prior import MIN_TRAINING_SHAPES
 
 __all__ = [
     "ActiveShapeModel",
     "ShapeSearch",
-    "PointDistributionModel",
-    "point_distribution_model",
-    "landmark_mesh",
-    "vertex_normals",
 ]
-
-MIN_TRAINING_SHAPES = 3
-
-
-# ----------------------------------------------------------------------------- geometry
-
-
-def _similarity(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """Least-squares ``dst ~ s R src + t`` (proper rotation): (s, R, t)."""
-    mu_s, mu_d = src.mean(0), dst.mean(0)
-    a, b = src - mu_s, dst - mu_d
-    u, sig, vt = np.linalg.svd(b.T @ a)
-    d = np.array([1.0, 1.0, np.sign(np.linalg.det(u @ vt)) or 1.0])
-    rot = (u * d) @ vt
-    var = float((a**2).sum())
-    s = float((sig * d).sum() / var) if var > 0 else 1.0
-    return s, rot, mu_d - s * mu_s @ rot.T
-
-
-def _align_all(shapes: np.ndarray, mean: np.ndarray) -> np.ndarray:
-    """Centred shapes aligned onto ``mean`` (similarity), projected onto its tangent space."""
-    out = []
-    for x in shapes:
-        s, rot, _ = _similarity(x, mean)
-        y = s * x @ rot.T
-        out.append(y / np.sum(y * mean))
-    return np.stack(out)
-
-
-def landmark_mesh(shape: np.ndarray) -> np.ndarray:
-    """Triangles over landmarks: the hull of the landmarks projected onto a sphere.
-
-    Parameters
-    ----------
-    shape : (N, 3) float array
-        A landmark configuration (the mean shape), star-shaped about its centroid.
-
-    Returns
-    -------
-    faces : (F, 3) int array
-        Oriented so that face normals point away from the centroid.
-    """
-    centred = shape - shape.mean(0)
-    unit = centred / np.maximum(np.linalg.norm(centred, axis=1, keepdims=True), 1e-12)
-    faces = ConvexHull(unit).simplices.copy()
-    a, b, c = (unit[faces[:, j]] for j in range(3))
-    flip = np.einsum("ij,ij->i", np.cross(b - a, c - a), a + b + c) < 0
-    faces[flip] = faces[flip][:, ::-1]
-    return faces
-
-
-def vertex_normals(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Area-weighted unit vertex normals, ``(N, 3)``, of a landmark mesh."""
-    a, b, c = (points[faces[:, j]] for j in range(3))
-    fn = np.cross(b - a, c - a)
-    normals = np.zeros_like(points)
-    for j in range(3):
-        np.add.at(normals, faces[:, j], fn)
-    return normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
-
-
-@dataclass(frozen=True)
-class PointDistributionModel:
-    """Result of :func:`point_distribution_model`.
-
-    Attributes
-    ----------
-    mean : (N, 3) float array
-        Mean shape: centred, unit centroid size, in the mean orientation of the inputs.
-    modes : (K, N, 3) float array
-        Orthonormal modes of variation (as flattened vectors).
-    eigenvalues : (K,) float array
-        Variance along each mode (unit-size frame), descending.
-    mean_size : float
-        Mean centroid size of the input shapes (their units, mm).
-    aligned : (S, N, 3) float array
-        Input shapes after Procrustes alignment and tangent projection.
-    explained : float
-        Fraction of the total variance the K modes explain.
-    """
-
-    mean: np.ndarray
-    modes: np.ndarray
-    eigenvalues: np.ndarray
-    mean_size: float
-    aligned: np.ndarray
-    explained: float
-
-
-def point_distribution_model(
-    shapes: np.ndarray, *, variance: float = 0.98, max_iter: int = 50
-) -> PointDistributionModel:
-    """Generalised Procrustes alignment and PCA of landmark configurations.
-
-    Parameters
-    ----------
-    shapes : (S, N, 3) float array, mm
-        Landmark configurations in correspondence.
-    variance : float, default 0.98
-        Keep the fewest modes that explain at least this fraction of the variance.
-    max_iter : int, default 50
-        Procrustes iterations (the mean is re-estimated and re-aligned each time).
-
-    Returns
-    -------
-    PointDistributionModel
-        Invariant to a similarity transform of any input shape, except for the orientation
-        of the mean, which is the mean (chordal L2) rotation of the inputs.
-    """
-    shapes = np.asarray(shapes, dtype=float)
-    if shapes.ndim != 3 or shapes.shape[2] != 3 or len(shapes) < 2:
-        raise ValueError(f"`shapes` must be (S, N, 3) with S >= 2, got {shapes.shape}")
-    centred = shapes - shapes.mean(axis=1, keepdims=True)
-    sizes = np.sqrt((centred**2).sum(axis=(1, 2)))
-    unit = centred / sizes[:, None, None]
-    mean = unit[0].copy()
-    for _ in range(max_iter):
-        new = _align_all(unit, mean).mean(axis=0)
-        new /= np.linalg.norm(new)
-        new = new @ _similarity(new, mean)[1].T  # keep the mean's orientation fixed
-        converged = np.abs(new - mean).max() < 1e-10
-        mean = new
-        if converged:
-            break
-    # Unit pose = the mean orientation of the inputs: rotate the mean into it.
-    rotations = Rotation.from_matrix(np.stack([_similarity(mean, x)[1] for x in unit]))
-    mean = mean @ rotations.mean().as_matrix().T
-    aligned = _align_all(unit, mean)
-    dev = (aligned - mean).reshape(len(aligned), -1)
-    _, sv, vt = np.linalg.svd(dev, full_matrices=False)
-    eig = sv**2 / (len(aligned) - 1)
-    total = eig.sum()
-    if total > 0:
-        ratio = np.cumsum(eig) / total
-        k = min(int(np.searchsorted(ratio, variance - 1e-12) + 1), len(eig))
-        explained = float(ratio[k - 1])
-    else:
-        k, explained = 0, 1.0
-    return PointDistributionModel(
-        mean=mean,
-        modes=vt[:k].reshape(k, -1, 3),
-        eigenvalues=eig[:k],
-        mean_size=float(sizes.mean()),
-        aligned=aligned,
-        explained=explained,
-    )
 
 
 # ----------------------------------------------------------------------------- profiles
+
+
+def _pose(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Scale, rotation and translation of the similarity taking ``src`` onto ``dst``."""
+    fit = similarity_fit(src, dst)
+    return fit.scale, fit.rotation, fit.translation
 
 
 def _smoothed(image: sitk.Image, sigma_mm: float) -> np.ndarray:
@@ -350,11 +207,11 @@ class ActiveShapeModel:
         progress : bool, default False
         """
         if not 0.0 < self.variance <= 1.0:
-            raise ValueError("`variance` must be in (0, 1].")
+            raise ParameterError("`variance` must be in (0, 1].")
         if self.search_half <= self.profile_half or self.profile_half < 1:
-            raise ValueError("need 1 <= `profile_half` < `search_half`.")
+            raise ParameterError("need 1 <= `profile_half` < `search_half`.")
         if int(self.n_levels) < 1:
-            raise ValueError(f"`n_levels` must be >= 1, got {self.n_levels}")
+            raise ParameterError(f"`n_levels` must be >= 1, got {self.n_levels}")
         shapes = np.asarray(shapes, dtype=float)
         if shapes.ndim != 3 or shapes.shape[2] != 3:
             raise CohortError(f"training shapes must be (S, N, 3), got {shapes.shape}")
@@ -405,7 +262,7 @@ class ActiveShapeModel:
         """Pose and clamped shape parameters that best explain suggested points ``y``."""
         limits = self.limit * np.sqrt(self.eigenvalues_)
         for _ in range(5):
-            s, rot, t = _similarity(self._instance(b), y)
+            s, rot, t = _pose(self._instance(b), y)
             local = ((y - t) @ rot) / s
             local = local / np.sum(local * self.mean_shape_)
             b_new = np.clip(
@@ -417,7 +274,7 @@ class ActiveShapeModel:
                 b = b_new
                 break
             b = b_new
-        s, rot, t = _similarity(self._instance(b), y)
+        s, rot, t = _pose(self._instance(b), y)
         return s, rot, t, b
 
     def search(self, image: sitk.Image, start=None, *, levels: int | None = None) -> ShapeSearch:
@@ -447,15 +304,15 @@ class ActiveShapeModel:
         else:
             start = np.asarray(start, dtype=float)
             if start.shape != self.mean_shape_.shape:
-                raise ValueError(
+                raise ParameterError(
                     f"`start` must be {self.mean_shape_.shape} landmarks, got {start.shape}"
                 )
             if not np.ptp(start, axis=0).any():
-                raise ValueError("the `start` landmarks all coincide: no pose to start from")
+                raise ParameterError("the `start` landmarks all coincide: no pose to start from")
             s, rot, t, b = self._fit_to_points(start, b)
         n_levels = self.n_levels if levels is None else min(int(levels), self.n_levels)
         if n_levels < 1:
-            raise ValueError(f"`levels` must be >= 1, got {levels}")
+            raise ParameterError(f"`levels` must be >= 1, got {levels}")
         k, m = self.profile_half, self.search_half
         shifts = np.arange(-(m - k), m - k + 1)
         n_iter = []
@@ -505,7 +362,9 @@ class ActiveShapeModel:
         self._check_fitted()
         landmarks = np.asarray(landmarks, dtype=float)
         if landmarks.shape != self.mean_shape_.shape:
-            raise ValueError(f"`landmarks` must be {self.mean_shape_.shape}, got {landmarks.shape}")
+            raise ParameterError(
+                f"`landmarks` must be {self.mean_shape_.shape}, got {landmarks.shape}"
+            )
         return self._profile_cost(image, _smoothed(image, self._level_sigma_step(0)[0]), landmarks)
 
     # -- persistence ------------------------------------------------------------------------
@@ -555,7 +414,7 @@ class ActiveShapeModel:
             or means.shape != (model.n_levels, n, width)
             or prec.shape != (model.n_levels, n, width, width)
         ):
-            raise ValueError("active shape model arrays of inconsistent shapes")
+            raise ParameterError("active shape model arrays of inconsistent shapes")
         model.mean_shape_, model.modes_, model.eigenvalues_ = mean, modes, eig
         model.mean_size_ = float(state["mean_size"])
         model.faces_ = faces

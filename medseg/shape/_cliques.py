@@ -10,6 +10,8 @@ from numpy.typing import ArrayLike
 from scipy.spatial import Delaunay, QhullError, cKDTree
 from sklearn.utils import check_random_state
 
+from medseg.errors import ParameterError
+
 __all__ = ["select_cliques", "clique_table_size", "CliqueTableSize"]
 
 _METHODS = ("delaunay", "knn", "all")
@@ -18,12 +20,12 @@ _METHODS = ("delaunay", "knn", "all")
 def _as_points(mean_shape: ArrayLike) -> np.ndarray:
     pts = np.asarray(mean_shape, dtype=float)
     if pts.ndim != 2 or pts.shape[1] != 3 or pts.shape[0] < 3:
-        raise ValueError(
+        raise ParameterError(
             f"`mean_shape` must be an (N, 3) array of landmark positions with N >= 3; "
             f"got shape {pts.shape}"
         )
     if not np.all(np.isfinite(pts)):
-        raise ValueError("`mean_shape` contains NaN or infinite coordinates")
+        raise ParameterError("`mean_shape` contains NaN or infinite coordinates")
     return pts
 
 
@@ -95,7 +97,7 @@ def select_cliques(
     """
     pts = _as_points(mean_shape)
     if method not in _METHODS:
-        raise ValueError(f"`method` must be one of {_METHODS}; got {method!r}")
+        raise ParameterError(f"`method` must be one of {_METHODS}; got {method!r}")
     if method == "delaunay":
         if len(pts) < 4:
             cliques = np.array([[0, 1, 2]], dtype=np.int64)
@@ -103,13 +105,13 @@ def select_cliques(
             cliques = _delaunay_faces(pts, random_state)
     elif method == "knn":
         if int(k) < 2:
-            raise ValueError(f"`k` must be >= 2 for method='knn'; got {k}")
+            raise ParameterError(f"`k` must be >= 2 for method='knn'; got {k}")
         cliques = _knn_triples(pts, int(k))
     else:
         cliques = np.array(list(combinations(range(len(pts)), 3)), dtype=np.int64)
     if max_cliques is not None:
         if int(max_cliques) < 1:
-            raise ValueError(f"`max_cliques` must be a positive integer; got {max_cliques}")
+            raise ParameterError(f"`max_cliques` must be a positive integer; got {max_cliques}")
         if len(cliques) > max_cliques:
             rng = check_random_state(random_state)
             keep = np.sort(rng.choice(len(cliques), size=int(max_cliques), replace=False))

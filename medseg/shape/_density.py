@@ -18,6 +18,8 @@ from sklearn.mixture import GaussianMixture
 from sklearn.utils import check_random_state
 from threadpoolctl import threadpool_limits
 
+from medseg.errors import ParameterError
+
 __all__ = ["MixtureParams", "fit_mixtures", "mixture_logpdf", "DENSITIES"]
 
 DENSITIES = ("gmm", "gaussian", "parzen")
@@ -115,7 +117,7 @@ def fit_mixtures(
     MixtureParams
     """
     if kind not in DENSITIES:
-        raise ValueError(f"`density` must be one of {DENSITIES}; got {kind!r}")
+        raise ParameterError(f"`density` must be one of {DENSITIES}; got {kind!r}")
     rng = check_random_state(random_state)
     fits = []
     # thousands of tiny problems: BLAS / OpenMP threads only add contention (4x slower)

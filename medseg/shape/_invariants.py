@@ -11,6 +11,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike
 
+from medseg.errors import ParameterError
+
 __all__ = ["relative_distances", "relative_distances_and_size", "triangle_angles", "INVARIANTS"]
 
 # Side lengths below this (relative to the perimeter, or absolute in mm for a zero perimeter)
@@ -30,7 +32,7 @@ def _sides(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 def _check_triangles(points: ArrayLike) -> np.ndarray:
     pts = np.asarray(points, dtype=float)
     if pts.ndim < 2 or pts.shape[-2:] != (3, 3):
-        raise ValueError(
+        raise ParameterError(
             f"`points` must have shape (..., 3, 3) (triangle vertices i, j, k in x, y, z); "
             f"got {pts.shape}"
         )

@@ -18,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike
 
-from medseg.errors import NotFittedError
+from medseg.errors import NotFittedError, ParameterError
 
 __all__ = ["OrientationPrior", "triangle_orientation"]
 
@@ -90,7 +90,7 @@ class OrientationPrior:
         directions = np.asarray(directions, dtype=float)
         cliques = np.asarray(cliques, dtype=np.int64)
         if shapes.ndim != 3 or shapes.shape[-1] != 3 or directions.shape != shapes.shape:
-            raise ValueError(
+            raise ParameterError(
                 f"`shapes` and `directions` must both have shape (S, N, 3); got {shapes.shape} "
                 f"and {directions.shape}"
             )
@@ -100,9 +100,9 @@ class OrientationPrior:
             or cliques.min(initial=0) < 0
             or (cliques.max(initial=0) >= shapes.shape[1])
         ):
-            raise ValueError(f"`cliques` must be (C, 3) indices below {shapes.shape[1]}")
+            raise ParameterError(f"`cliques` must be (C, 3) indices below {shapes.shape[1]}")
         if not float(self.pseudo_count) > 0:
-            raise ValueError(f"`pseudo_count` must be > 0, got {self.pseudo_count}")
+            raise ParameterError(f"`pseudo_count` must be > 0, got {self.pseudo_count}")
         i, j, k = cliques.T
         cos = triangle_orientation(
             shapes[:, i], shapes[:, j], shapes[:, k],
@@ -165,7 +165,7 @@ class OrientationPrior:
         cand = np.asarray(candidates, dtype=float)
         dirs = np.asarray(directions, dtype=float)
         if cand.ndim != 3 or cand.shape[-1] != 3 or dirs.shape != cand.shape:
-            raise ValueError(
+            raise ParameterError(
                 f"`candidates` and `directions` must both have shape (N, L, 3); got "
                 f"{cand.shape} and {dirs.shape}"
             )
@@ -205,9 +205,9 @@ class OrientationPrior:
         agreement = np.asarray(state["agreement"], dtype=float)
         n_c = len(cliques)
         if cliques.shape != (n_c, 3) or reference.shape != (n_c,) or agreement.shape != (n_c,):
-            raise ValueError("orientation arrays of inconsistent shapes")
+            raise ParameterError("orientation arrays of inconsistent shapes")
         if not (np.all(np.abs(reference) == 1) and np.all((agreement > 0) & (agreement < 1))):
-            raise ValueError("orientation arrays out of range")
+            raise ParameterError("orientation arrays out of range")
         prior.cliques_, prior.reference_, prior.agreement_ = cliques, reference, agreement
         prior.n_training_shapes_ = int(state["n_training_shapes"])
         return prior

@@ -10,7 +10,9 @@ from numpy.typing import ArrayLike
 from sklearn.base import BaseEstimator
 from sklearn.utils import check_random_state
 
-from medseg._resources import (
+from medseg.errors import CohortError, NotFittedError, ParameterError
+from medseg.geometry import procrustes_mean
+from medseg.memory import (
     BYTES_PER_TRIPLE,
     check_memory,
     format_bytes,
@@ -18,11 +20,9 @@ from medseg._resources import (
     potential_chunk_cliques,
     potential_table_bytes,
 )
-from medseg.errors import CohortError, NotFittedError
 from medseg.shape._cliques import _METHODS, clique_table_size, select_cliques
 from medseg.shape._density import DENSITIES, MixtureParams, fit_mixtures, mixture_logpdf
 from medseg.shape._invariants import INVARIANTS
-from medseg.shape._procrustes import procrustes_mean
 
 __all__ = ["TripletPrior", "MIN_TRAINING_SHAPES"]
 
@@ -210,7 +210,9 @@ class TripletPrior(BaseEstimator):
         for name, (check, what) in _PARAMETER_CONSTRAINTS.items():
             value = getattr(self, name)
             if not check(value):
-                raise ValueError(f"TripletPrior parameter `{name}` must be {what}; got {value!r}")
+                raise ParameterError(
+                    f"TripletPrior parameter `{name}` must be {what}; got {value!r}"
+                )
 
     def _check_fitted(self) -> None:
         if not hasattr(self, "cliques_"):
@@ -221,12 +223,12 @@ class TripletPrior(BaseEstimator):
     def _check_points(self, points: ArrayLike, name: str) -> np.ndarray:
         pts = np.asarray(points, dtype=float)
         if pts.ndim < 2 or pts.shape[-2:] != (self.n_landmarks_, 3):
-            raise ValueError(
+            raise ParameterError(
                 f"`{name}` must have shape (..., {self.n_landmarks_}, 3) (the prior was fitted "
                 f"on {self.n_landmarks_} landmarks); got {pts.shape}"
             )
         if not np.all(np.isfinite(pts)):
-            raise ValueError(f"`{name}` contains NaN or infinite coordinates")
+            raise ParameterError(f"`{name}` contains NaN or infinite coordinates")
         return pts
 
     # ------------------------------------------------------------------ fitting
@@ -246,11 +248,11 @@ class TripletPrior(BaseEstimator):
         self._validate_params()
         shapes = np.asarray(shapes, dtype=float)
         if shapes.ndim != 3 or shapes.shape[2] != 3 or shapes.shape[1] < 3:
-            raise ValueError(
+            raise ParameterError(
                 f"`shapes` must have shape (S, N, 3) with N >= 3 landmarks; got {shapes.shape}"
             )
         if not np.all(np.isfinite(shapes)):
-            raise ValueError("`shapes` contains NaN or infinite coordinates")
+            raise ParameterError("`shapes` contains NaN or infinite coordinates")
         if shapes.shape[0] < MIN_TRAINING_SHAPES:
             raise CohortError(
                 f"the shape prior needs at least {MIN_TRAINING_SHAPES} training shapes to "
@@ -271,7 +273,7 @@ class TripletPrior(BaseEstimator):
             cliques = np.unique(np.sort(np.asarray(self.cliques, dtype=np.int64), 1), axis=0)
             bad = (cliques[:, 0] == cliques[:, 1]) | (cliques[:, 1] == cliques[:, 2])
             if cliques.size == 0 or bad.any() or cliques.min() < 0 or cliques.max() >= n:
-                raise ValueError(
+                raise ParameterError(
                     f"`cliques` must hold triples of distinct landmark indices in [0, {n}); "
                     "got an empty array, a repeated index or an index out of range"
                 )
@@ -366,7 +368,7 @@ class TripletPrior(BaseEstimator):
             Bound on the working memory besides the returned table.
         max_table_bytes : int, optional
             Memory limit (bytes) for the tables and the working memory together
-            (:func:`medseg._resources.potential_table_bytes`, estimated before anything is
+            (:func:`medseg.memory.potential_table_bytes`, estimated before anything is
             allocated); default: ``MEDSEG_MEMORY_LIMIT_GB`` if set, else half the physical
             memory. Above it, ``ResourceLimitError`` says how far to lower ``L`` or ``C``.
 
@@ -380,12 +382,12 @@ class TripletPrior(BaseEstimator):
         self._check_fitted()
         cand = np.ascontiguousarray(candidates, dtype=float)
         if cand.ndim != 3 or cand.shape[0] != self.n_landmarks_ or cand.shape[2] != 3:
-            raise ValueError(
+            raise ParameterError(
                 f"`candidates` must have shape ({self.n_landmarks_}, L, 3) (L candidates for "
                 f"each of the {self.n_landmarks_} landmarks); got {cand.shape}"
             )
         if cand.shape[1] < 1 or not np.all(np.isfinite(cand)):
-            raise ValueError("`candidates` must hold at least one finite position per landmark")
+            raise ParameterError("`candidates` must hold at least one finite position per landmark")
         n_lab = cand.shape[1]
         n_cliques = len(self.cliques_)
         if chunk_size is None:

@@ -8,9 +8,9 @@ from typing import Any
 import numpy as np
 import SimpleITK as sitk
 
-from medseg._io_checks import INTEGER_PIXELS, check_same_geometry, describe
-from medseg._io_images import read_image
 from medseg.errors import LabelError
+from medseg.io._checks import INTEGER_PIXELS, check_same_geometry, describe
+from medseg.io._images import read_image
 
 __all__ = ["read_label", "select_labels", "resample_like"]
 

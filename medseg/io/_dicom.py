@@ -13,10 +13,10 @@ from typing import Any
 import numpy as np
 import SimpleITK as sitk
 
-from medseg._io_atomic import PathLike, check_not_protected
-from medseg._io_checks import check_image, describe, is_nibabel, itk_reason
-from medseg._io_nibabel import from_nibabel
 from medseg.errors import ImageFormatError, ImageGeometryError, InputFileError
+from medseg.io._atomic import PathLike, check_not_protected
+from medseg.io._checks import check_image, describe, is_nibabel, itk_reason
+from medseg.io._nibabel import from_nibabel
 
 __all__ = ["read_dicom_folder", "write_dicom_series"]
 

@@ -13,137 +13,35 @@ using pose-invariant higher-order graphs", MICCAI 2010. doi:10.1007/978-3-642-15
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
-import SimpleITK as sitk
-from scipy.spatial import procrustes
+from sklearn.base import BaseEstimator
 from sklearn.utils import check_random_state
 from tqdm.auto import tqdm
 
-from medseg import _model_io
-from medseg._resources import (
-    check_memory,
-    detection_bytes,
-    feature_map_bytes,
-    format_bytes,
-    memory_limit_bytes,
-    triplet_mrf_bytes,
-)
 from medseg.correspondence import cohort_landmarks, label_surface, landmarks_from_labels
 from medseg.datasets import Cohort
 from medseg.detection import CandidateSet, LandmarkDetector, gradient_directions
-from medseg.errors import CohortError, ImageGeometryError, NotFittedError
+from medseg.errors import CohortError, NotFittedError, ParameterError
+from medseg.geometry import procrustes_disparity
 from medseg.io import as_input_type, read_image, select_labels
-from medseg.mrf import DEFAULT_MAX_BYTES, MRF, SolveResult, solve
-from medseg.reconstruction import check_distinct_landmarks, warp_mask, warp_surface
-from medseg.shape import (
-    ActiveShapeModel,
-    OrientationPrior,
-    TripletPrior,
-    procrustes_mean,
-    select_cliques,
-)
+from medseg.memory import memory_limit_bytes
+from medseg.mrf import DEFAULT_MAX_BYTES, MRF, solve
+from medseg.reconstruction import warp_mask, warp_surface
+from medseg.segmenter import _memory, _persistence
+from medseg.segmenter._hypotheses import check_not_collapsed, margin, refined_hypotheses
+from medseg.segmenter._result import Hypothesis, Segmentation
+from medseg.shape import ActiveShapeModel, OrientationPrior, TripletPrior
 
-__all__ = ["ShapePriorSegmenter", "Segmentation", "load_model"]
+__all__ = ["ShapePriorSegmenter", "load_model", "MIN_TRAINING_CASES"]
 
+#: Fewest training cases a model (and a cross-validation fold) may have.
 MIN_TRAINING_CASES = 5
 _SHAPE_MODEL_LEVELS = 3  # resolution levels the refining active shape model learns
-# Each further MRF hypothesis adds this cost (nats) to every candidate within this distance
-# of the landmark's position in an earlier hypothesis, so the solver moves elsewhere.
-_HYPOTHESIS_PENALTY = 5.0
-_HYPOTHESIS_EXCLUSION_MM = 4.0
 
 
-@dataclass(frozen=True)
-class Hypothesis:
-    """One MRF solution and its active-shape refinement.
-
-    Attributes
-    ----------
-    labels : (N,) int array
-        The candidate chosen for each landmark.
-    chosen : (N, 3) float array, mm
-        Those candidates' positions.
-    landmarks : (N, 3) float array, mm
-        The refined landmarks.
-    profile_cost : float
-        How well the refined instance fits the image's boundary profiles (lower is better,
-        :meth:`medseg.shape.ActiveShapeModel.profile_cost`).
-    """
-
-    labels: np.ndarray
-    chosen: np.ndarray
-    landmarks: np.ndarray
-    profile_cost: float
-
-
-@dataclass
-class Segmentation:
-    """The result of :meth:`ShapePriorSegmenter.segment`.
-
-    Attributes
-    ----------
-    label : image
-        Label map (uint8, 1 = structure) in the input image's geometry, of the input's type
-        (SimpleITK image, or nibabel image when a nibabel image was given).
-    landmarks : (N, 3) float array, mm, (x, y, z)
-        The landmarks found (the MRF's choice refined by the active shape model, see
-        ``refine_levels``), in the input's physical space.
-    surface : pyvista.PolyData
-        The template surface warped onto ``landmarks`` (mm).
-    candidates : CandidateSet
-        The candidate positions ``(N, L, 3)`` and probabilities ``(N, L)`` per landmark.
-    mrf : SolveResult or None
-        Energy, lower bound, relative gap, iterations of the MRF solve (None without prior).
-    confidence : (N,) float array
-        Per landmark: the margin between its two best min-marginal energies (with the
-        prior) or unary costs (without), i.e. what moving it to its second-best candidate
-        costs at least; small values mark uncertain landmarks.
-    timings : dict
-        Seconds spent in each stage.
-    chosen : (N, 3) float array, mm
-        The candidates the MRF (or, without prior, the detectors) chose, before the
-        active-shape refinement that gives ``landmarks`` (equal to them without it).
-    hypotheses : list of Hypothesis
-        With refinement: the MRF solutions that were refined, the first being the MRF's
-        optimum (``mrf``); ``landmarks`` come from the one with the lowest profile cost.
-        Empty without refinement.
-    """
-
-    label: Any
-    landmarks: np.ndarray
-    surface: Any
-    candidates: CandidateSet
-    mrf: SolveResult | None
-    confidence: np.ndarray
-    timings: dict = field(default_factory=dict)
-    chosen: np.ndarray | None = None
-    hypotheses: list = field(default_factory=list)
-    image: sitk.Image | None = field(default=None, repr=False)
-
-    def plot(self, *, axis: int = 0, index: int | None = None):
-        """Image, label and overlay of one slice with the nearby landmarks (a matplotlib
-        Figure; by default the slice with the largest labelled area)."""
-        from medseg.viz import plot_slice
-
-        return plot_slice(self.image, self.label, axis=axis, index=index, landmarks=self.landmarks)
-
-    def show(self, **kwargs):
-        """Interactive 3D view of the surface and landmarks (pyvista)."""
-        import pyvista as pv
-
-        plotter = pv.Plotter(**kwargs)
-        plotter.add_mesh(self.surface, color="tan", opacity=0.8)
-        plotter.add_points(
-            self.landmarks, color="red", point_size=10, render_points_as_spheres=True
-        )
-        return plotter.show()
-
-
-class ShapePriorSegmenter:
+class ShapePriorSegmenter(BaseEstimator):
     """Knowledge-based segmentation with a pose-invariant higher-order shape prior.
 
     Parameters
@@ -301,12 +199,12 @@ class ShapePriorSegmenter:
             Show progress bars.
         """
         if landmark_source not in ("auto", "cohort", "labels"):
-            raise ValueError("`landmark_source` must be 'auto', 'cohort' or 'labels'.")
+            raise ParameterError("`landmark_source` must be 'auto', 'cohort' or 'labels'.")
         weight, sigma = float(self.orientation_weight), float(self.orientation_sigma_mm)
         if not (np.isfinite(weight) and weight >= 0):
-            raise ValueError(f"`orientation_weight` must be finite and >= 0; got {weight}")
+            raise ParameterError(f"`orientation_weight` must be finite and >= 0; got {weight}")
         if not (np.isfinite(sigma) and sigma > 0):
-            raise ValueError(f"`orientation_sigma_mm` must be finite and > 0; got {sigma}")
+            raise ParameterError(f"`orientation_sigma_mm` must be finite and > 0; got {sigma}")
         self._check_refinement()
         if len(cohort) < MIN_TRAINING_CASES:
             raise CohortError(
@@ -357,7 +255,15 @@ class ShapePriorSegmenter:
         timings["landmarks"] = time.perf_counter() - t0
 
         kept_images = [images[i] for i in np.flatnonzero(keep)]
-        self._check_fit_memory(kept_images, self.landmarks_)
+        _memory.check_fit_memory(
+            kept_images,
+            self.landmarks_,
+            cliques=self.cliques,
+            n_candidates=self.n_candidates,
+            method=self.mrf_method,
+            orientation=self._uses_orientation(),
+            limit=_memory.configured_limit(self.memory_limit_gb),
+        )
 
         t0 = time.perf_counter()
         self.detector_ = LandmarkDetector(
@@ -410,9 +316,9 @@ class ShapePriorSegmenter:
         self._check_is_fitted()
         source = image
         image = read_image(image)
-        limit = self._memory_limit()
+        limit = _memory.configured_limit(self.memory_limit_gb)
         if candidates is None:
-            self._check_detection_memory(image, limit)
+            _memory.check_detection_memory(image, self.detector_, limit)
         timings: dict[str, float] = {}
 
         t0 = time.perf_counter()
@@ -426,7 +332,14 @@ class ShapePriorSegmenter:
         result = None
         if use_prior:
             t0 = time.perf_counter()
-            self._check_mrf_memory(n, len(self.prior_.cliques_), cands.positions.shape[1], limit)
+            _memory.check_mrf_memory(
+                n,
+                len(self.prior_.cliques_),
+                cands.positions.shape[1],
+                method=self.mrf_method,
+                orientation=self._uses_orientation(),
+                limit=limit,
+            )
             tables = self.prior_.potential_tables(cands.positions, max_table_bytes=limit)
             if self._uses_orientation():
                 directions = gradient_directions(
@@ -447,18 +360,33 @@ class ShapePriorSegmenter:
             )
             timings["mrf"] = time.perf_counter() - t0
             choice = np.asarray(result.x)
-            confidence = _margin(result.min_marginals)
+            confidence = margin(result.min_marginals)
         else:
             choice = np.argmin(unaries, axis=1)
-            confidence = _margin(unaries)
+            confidence = margin(unaries)
         landmarks = cands.positions[np.arange(n), choice]
         chosen = landmarks
         hypotheses: list[Hypothesis] = []
         if use_prior and self.refine_levels and self.shape_model_ is not None:
             self._check_refinement()
-            _check_not_collapsed(chosen)
+            check_not_collapsed(chosen)
             t0 = time.perf_counter()
-            hypotheses = self._refined_hypotheses(image, cands, unaries, tables, result, budget)
+            hypotheses = refined_hypotheses(
+                self.shape_model_,
+                image,
+                cands.positions,
+                unaries,
+                self.prior_.cliques_,
+                tables,
+                result,
+                n_hypotheses=self.n_hypotheses,
+                refine_levels=self.refine_levels,
+                solve_options={
+                    "method": self.mrf_method,
+                    "max_iter": self.max_iter,
+                    "max_bytes": budget,
+                },
+            )
             best = min(hypotheses, key=lambda h: h.profile_cost)
             chosen, landmarks = best.chosen, best.landmarks
             timings["refinement"] = time.perf_counter() - t0
@@ -489,133 +417,17 @@ class ShapePriorSegmenter:
             image=image,
         )
 
-    def _refined_hypotheses(self, image, cands, unaries, tables, result, budget):
-        """The MRF's optimum and ``n_hypotheses - 1`` solutions away from it, each refined."""
-        positions = cands.positions
-        rows = np.arange(positions.shape[0])
-        penalised = np.array(unaries, dtype=float)
-        labels = np.asarray(result.x)
-        out = []
-        for k in range(int(self.n_hypotheses)):
-            if k:
-                earlier = positions[rows, labels]
-                near = np.linalg.norm(positions - earlier[:, None], axis=-1)
-                penalised[near < _HYPOTHESIS_EXCLUSION_MM] += _HYPOTHESIS_PENALTY
-                other = solve(
-                    MRF.from_triplets(penalised, self.prior_.cliques_, tables),
-                    method=self.mrf_method,
-                    max_iter=self.max_iter,
-                    max_bytes=budget,
-                )
-                labels = np.asarray(other.x)
-            chosen = positions[rows, labels]
-            if k and _collapsed(chosen):
-                continue  # collapsed onto shared candidates: nothing to refine
-            found = self.shape_model_.search(image, start=chosen, levels=int(self.refine_levels))
-            out.append(Hypothesis(labels, chosen, found.landmarks, found.profile_cost))
-        return out
-
     # -- persistence ------------------------------------------------------------------------
 
     def save(self, path: str | Path) -> Path:
         """Write the model to a folder (JSON + NPZ + skops, checksummed, no pickle)."""
         self._check_is_fitted()
-        return _model_io.save_model(self, Path(path))
+        return _persistence.save_model(self, Path(path))
 
     @classmethod
     def load(cls, path: str | Path) -> ShapePriorSegmenter:
         """Read a model written by :meth:`save`; checksums and format version are verified."""
-        return _model_io.load_model(cls, Path(path))
-
-    # -- resource guards --------------------------------------------------------------------
-
-    def _memory_limit(self) -> int | None:
-        """The limit in bytes if set on the model, else None (environment / default)."""
-        if self.memory_limit_gb is None:
-            return None
-        return memory_limit_bytes(self.memory_limit_gb)
-
-    def _mrf_hint(self, n_landmarks: int, n_cliques: int, n_lab: int, limit: int) -> str:
-        fit_l = next(
-            (lab for lab in range(n_lab - 1, 0, -1)
-             if triplet_mrf_bytes(n_landmarks, n_cliques, lab, method=self.mrf_method,
-                                  orientation=self._uses_orientation()) <= limit),
-            0,
-        )  # fmt: skip
-        lower_l = (
-            f"fewer candidates per landmark (n_candidates={fit_l} fits, now {n_lab}; set "
-            "model.n_candidates, no retraining needed)"
-            if fit_l
-            else "fewer candidates per landmark"
-        )
-        srmp = (
-            ", or mrf_method='mplp' (SRMP keeps 4 more copies of the tables)"
-            if self.mrf_method == "srmp"
-            else ""
-        )
-        return (
-            f"{lower_l}, or fewer cliques (retrain with cliques='delaunay' or 'knn' and fewer "
-            f"landmarks){srmp}"
-        )
-
-    def _check_mrf_memory(self, n_landmarks: int, n_cliques: int, n_lab: int, limit) -> None:
-        check_memory(
-            triplet_mrf_bytes(
-                n_landmarks,
-                n_cliques,
-                n_lab,
-                method=self.mrf_method,
-                orientation=self._uses_orientation(),
-            ),
-            what=(
-                f"the shape-prior MRF ({n_cliques} triplet cliques x {n_lab}^3 candidate "
-                f"triples: {format_bytes(4 * n_cliques * n_lab**3)} of potential tables, "
-                f"plus the {self.mrf_method} solver's working memory)"
-            ),
-            hint=self._mrf_hint(
-                n_landmarks, n_cliques, n_lab, memory_limit_bytes() if limit is None else limit
-            ),
-            limit=limit,
-        )
-
-    def _check_detection_memory(self, image: sitk.Image, limit: int | None) -> None:
-        shape = image.GetSize()[::-1]
-        spacing = image.GetSpacing()[::-1]
-        settings = self.detector_.features
-        check_memory(
-            detection_bytes(
-                shape, spacing=spacing, settings=settings, n_landmarks=self.detector_.n_landmarks_
-            ),
-            what=(
-                f"landmark detection on a {'x'.join(map(str, image.GetSize()))} image "
-                f"({settings.n_features} float32 feature maps and the filters' working set)"
-            ),
-            hint=(
-                "crop the image to the region of the structure, or resample it to a coarser "
-                "spacing (the feature maps grow with the number of voxels)"
-            ),
-            limit=limit,
-        )
-
-    def _check_fit_memory(self, images: list, landmarks: np.ndarray) -> None:
-        """Before training: the largest image's feature maps and the inference MRF."""
-        limit = self._memory_limit()
-        largest = max(images, key=lambda im: int(np.prod(im.GetSize())))
-        check_memory(
-            feature_map_bytes(
-                largest.GetSize()[::-1], spacing=largest.GetSpacing()[::-1],
-                settings=LandmarkDetector().features,
-            ),
-            what=(
-                f"training feature maps of the largest image "
-                f"({'x'.join(map(str, largest.GetSize()))} voxels)"
-            ),
-            hint="crop the training images around the structure, or resample them coarser",
-            limit=limit,
-        )  # fmt: skip
-        if isinstance(self.cliques, str):
-            n_cliques = len(select_cliques(procrustes_mean(landmarks), method=self.cliques))
-            self._check_mrf_memory(landmarks.shape[1], n_cliques, int(self.n_candidates), limit)
+        return _persistence.load_model(cls, Path(path))
 
     def _uses_orientation(self) -> bool:
         """Whether segment adds the handedness tables (fit always learns them)."""
@@ -629,13 +441,13 @@ class ShapePriorSegmenter:
             or not isinstance(levels, (int, np.integer))
             or not (0 <= levels <= _SHAPE_MODEL_LEVELS)
         ):
-            raise ValueError(
+            raise ParameterError(
                 f"`refine_levels` must be an integer from 0 to {_SHAPE_MODEL_LEVELS}; "
                 f"got {levels!r}"
             )
         n = self.n_hypotheses
         if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
-            raise ValueError(f"`n_hypotheses` must be an integer >= 1; got {n!r}")
+            raise ParameterError(f"`n_hypotheses` must be an integer >= 1; got {n!r}")
 
     def _check_is_fitted(self) -> None:
         if not hasattr(self, "detector_"):
@@ -655,7 +467,7 @@ def _procrustes_medoid(shapes: np.ndarray) -> int:
     disparity = np.zeros((n, n))
     for i in range(n):
         for j in range(i + 1, n):
-            disparity[i, j] = disparity[j, i] = procrustes(shapes[i], shapes[j])[2]
+            disparity[i, j] = disparity[j, i] = procrustes_disparity(shapes[i], shapes[j])
     return int(np.argmin(disparity.sum(axis=1)))
 
 
@@ -665,38 +477,3 @@ def _jittered(shapes: np.ndarray, sigma: float, copies: int, rng) -> np.ndarray:
         return shapes
     noise = rng.normal(scale=sigma, size=(copies,) + shapes.shape)
     return (shapes[None] + noise).reshape((-1,) + shapes.shape[1:])
-
-
-# Below this fraction of distinct positions the MRF's landmarks count as collapsed.
-_MIN_DISTINCT_FRACTION = 0.9
-
-
-def _collapsed(points: np.ndarray) -> bool:
-    """Landmarks piled onto a few positions (or a plane): nothing a shape fit can start from.
-
-    Two landmarks sharing a candidate is a local ambiguity the shape model resolves; most of
-    them sharing a few is what detection gives on an image without the structure.
-    """
-    distinct = np.unique(points, axis=0)
-    return (
-        len(distinct) < _MIN_DISTINCT_FRACTION * len(points)
-        or np.linalg.matrix_rank(distinct - distinct.mean(0)) < 3
-    )
-
-
-def _check_not_collapsed(chosen: np.ndarray) -> None:
-    if _collapsed(chosen):
-        check_distinct_landmarks(chosen, "chosen landmarks")  # names two that coincide
-        raise ImageGeometryError(
-            "the chosen landmarks are coplanar: the image does not seem to show the trained "
-            "structure"
-        )
-
-
-def _margin(costs: np.ndarray) -> np.ndarray:
-    """Per row: the second-smallest cost minus the smallest (0 for a single label)."""
-    costs = np.sort(np.asarray(costs, dtype=float), axis=1)
-    if costs.shape[1] < 2:
-        return np.zeros(len(costs))
-    margin = costs[:, 1] - costs[:, 0]
-    return np.where(np.isfinite(margin), margin, 0.0)

@@ -1,20 +1,16 @@
-"""Point-set registration used to build landmark correspondences.
+"""Point-set registration, used to build landmark correspondences.
 
-Private helpers on plain arrays of physical points ``(N, 3)`` in mm:
+On plain arrays of physical points ``(N, 3)`` in mm (the similarity fit itself is
+:func:`medseg.geometry.similarity_fit`):
 
-* :func:`similarity_fit`: least-squares similarity (rotation, uniform scale, translation)
-  between paired points (Umeyama 1991);
 * :func:`principal_axes_candidates`: moment / principal-axes initialisations, one per sign
   choice of the axes (the 4 proper rotations, or all 8 when reflections are allowed);
 * :func:`icp_similarity`: iterative closest point with a similarity transform;
-* :func:`cpd_nonrigid`: coherent point drift, non-rigid (Myronenko & Song 2010);
-* :func:`farthest_point_sampling`: evenly spread subset of a point set.
+* :func:`cpd_nonrigid`: coherent point drift, non-rigid (Myronenko & Song 2010).
 
 References
 ----------
-.. [1] S. Umeyama, "Least-squares estimation of transformation parameters between two point
-   patterns", IEEE TPAMI 13(4), 1991. :doi:`10.1109/34.88573`
-.. [2] A. Myronenko and X. Song, "Point set registration: coherent point drift", IEEE TPAMI
+.. [1] A. Myronenko and X. Song, "Point set registration: coherent point drift", IEEE TPAMI
    32(12), 2010. :doi:`10.1109/TPAMI.2010.46`
 """
 
@@ -26,81 +22,16 @@ from itertools import product
 import numpy as np
 from scipy.sparse.linalg import eigsh
 from scipy.spatial import cKDTree
-from sklearn.utils import check_random_state
+
+from medseg.geometry._similarity import Similarity, similarity_fit
 
 __all__ = [
-    "Similarity",
-    "similarity_fit",
     "principal_axes_candidates",
     "icp_similarity",
     "icp_affine",
     "cpd_nonrigid",
     "CPDResult",
-    "farthest_point_sampling",
 ]
-
-
-@dataclass(frozen=True)
-class Similarity:
-    """``y = scale * x @ rotation.T + translation``; ``rotation`` may be improper (det -1)."""
-
-    rotation: np.ndarray  # (3, 3)
-    scale: float
-    translation: np.ndarray  # (3,)
-
-    def __call__(self, points: np.ndarray) -> np.ndarray:
-        return self.scale * np.asarray(points, float) @ self.rotation.T + self.translation
-
-    def inverse(self, points: np.ndarray) -> np.ndarray:
-        return (np.asarray(points, float) - self.translation) @ self.rotation / self.scale
-
-    def compose(self, first: Similarity) -> Similarity:
-        """The transform ``self(first(x))``."""
-        return Similarity(
-            rotation=self.rotation @ first.rotation,
-            scale=self.scale * first.scale,
-            translation=self.scale * first.translation @ self.rotation.T + self.translation,
-        )
-
-    def matrix(self) -> np.ndarray:
-        """Homogeneous (4, 4) matrix acting on column vectors (x, y, z, 1)."""
-        m = np.eye(4)
-        m[:3, :3] = self.scale * self.rotation
-        m[:3, 3] = self.translation
-        return m
-
-
-def similarity_fit(
-    src: np.ndarray,
-    dst: np.ndarray,
-    *,
-    weights: np.ndarray | None = None,
-    allow_reflection: bool = False,
-) -> Similarity:
-    """Least-squares similarity mapping paired ``src`` points onto ``dst`` (Umeyama).
-
-    Parameters
-    ----------
-    src, dst : (N, 3) float arrays, mm
-    weights : (N,) float array, optional
-    allow_reflection : bool
-        If False the rotation is proper (det +1).
-    """
-    w = np.ones(len(src)) if weights is None else np.asarray(weights, float)
-    w = w / w.sum()
-    mu_s = w @ src
-    mu_d = w @ dst
-    xs = src - mu_s
-    xd = dst - mu_d
-    cov = (xd * w[:, None]).T @ xs
-    u, sig, vt = np.linalg.svd(cov)
-    d = np.ones(3)
-    if not allow_reflection and np.linalg.det(u) * np.linalg.det(vt) < 0:
-        d[-1] = -1.0
-    rot = (u * d) @ vt
-    var_s = float(w @ np.einsum("ij,ij->i", xs, xs))
-    scale = float((sig * d).sum() / var_s) if var_s > 0 else 1.0
-    return Similarity(rotation=rot, scale=scale, translation=mu_d - scale * mu_s @ rot.T)
 
 
 def _principal_frame(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -259,9 +190,9 @@ def cpd_nonrigid(
     """Coherent point drift, non-rigid: move the source ``y`` onto the target ``x``.
 
     ``y`` are the Gaussian mixture centroids, displaced by ``G W`` with the Gaussian kernel
-    ``G_ij = exp(-|y_i - y_j|^2 / (2 beta^2))``; the EM steps follow [2]_ (fig. 4). With
+    ``G_ij = exp(-|y_i - y_j|^2 / (2 beta^2))``; the EM steps follow [1]_ (fig. 4). With
     ``rank`` the kernel is replaced by its leading eigenpairs and the M-step solved by the
-    Woodbury identity, as in the fast variant of [2]_ (section 6).
+    Woodbury identity, as in the fast variant of [1]_ (section 6).
 
     Parameters
     ----------
@@ -327,36 +258,3 @@ def cpd_nonrigid(
         if abs(prev - sigma2) / prev < tol:
             break
     return CPDResult(moved=ty, sigma2=sigma2, n_iter=it, _y=y, _w=wmat, _beta=beta)
-
-
-def farthest_point_sampling(
-    points: np.ndarray, n: int, *, start: int | None = None, random_state=None
-) -> np.ndarray:
-    """Indices of ``n`` points spread evenly by greedy farthest-point sampling (Euclidean).
-
-    Parameters
-    ----------
-    points : (M, 3) float array
-    n : int, ``n <= M``
-    start : int, optional
-        First index; default: the point farthest from the centroid (deterministic), or a
-        random one if ``random_state`` is given.
-
-    Returns
-    -------
-    (n,) int array
-    """
-    points = np.asarray(points, float)
-    if start is None:
-        if random_state is None:
-            start = int(np.argmax(((points - points.mean(0)) ** 2).sum(1)))
-        else:
-            start = int(check_random_state(random_state).randint(len(points)))
-    idx = np.empty(n, dtype=np.intp)
-    idx[0] = start
-    dist = ((points - points[start]) ** 2).sum(1)
-    for k in range(1, n):
-        nxt = int(np.argmax(dist))
-        idx[k] = nxt
-        dist = np.minimum(dist, ((points - points[nxt]) ** 2).sum(1))
-    return idx

@@ -16,8 +16,9 @@ import nibabel as nib
 import numpy as np
 import SimpleITK as sitk
 
-from medseg._io_atomic import PathLike, atomic_write, check_not_protected
-from medseg._io_checks import (
+from medseg.errors import ImageFormatError, ImageGeometryError, InputFileError
+from medseg.io._atomic import PathLike, atomic_write, check_not_protected
+from medseg.io._checks import (
     check_finite,
     check_image,
     check_same_geometry,
@@ -25,9 +26,8 @@ from medseg._io_checks import (
     is_nibabel,
     itk_reason,
 )
-from medseg._io_dicom import read_dicom_folder
-from medseg._io_nibabel import from_nibabel, to_nibabel
-from medseg.errors import ImageFormatError, ImageGeometryError, InputFileError
+from medseg.io._dicom import read_dicom_folder
+from medseg.io._nibabel import from_nibabel, to_nibabel
 
 __all__ = ["IMAGE_SUFFIXES", "READ_SUFFIXES", "image_suffix", "read_image", "write_image"]
 

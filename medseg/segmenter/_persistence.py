@@ -20,7 +20,7 @@ on every ``np.load``; skops with an explicit list of trusted types), and every a
 (``template.npz``, ``prior.npz``, ``orientation.npz``, ``shape_model.npz``,
 ``detector/forests.skops``) is checked
 from its zip directory and ``.npy`` headers before it is unpacked
-(:func:`medseg._io_archive.check_archive`): an oversized, forged or malformed archive is refused
+(:func:`medseg.io._archive.check_archive`): an oversized, forged or malformed archive is refused
 with a :class:`ModelFileError`.
 """
 
@@ -34,10 +34,12 @@ from pathlib import Path
 import numpy as np
 import SimpleITK as sitk
 
-import medseg
-from medseg._io_archive import MAX_UNPACKED_BYTES, check_archive
+from medseg._version import __version__
+from medseg.detection import LandmarkDetector
 from medseg.errors import InputFileError, ModelFileError
 from medseg.io import atomic_folder
+from medseg.io._archive import MAX_UNPACKED_BYTES, check_archive
+from medseg.shape import ActiveShapeModel, OrientationPrior, TripletPrior
 
 FORMAT = "medseg-shape-prior-segmenter"
 FORMAT_VERSION = 3
@@ -119,7 +121,7 @@ def save_model(model, path: Path) -> Path:
         meta = {
             "format": FORMAT,
             "format_version": version,
-            "medseg_version": medseg.__version__,
+            "medseg_version": __version__,
             "params": {
                 name: _jsonable(getattr(model, name))
                 for name in _PARAMS
@@ -136,9 +138,6 @@ def save_model(model, path: Path) -> Path:
 
 
 def load_model(cls, path: Path):
-    from medseg.detection import LandmarkDetector
-    from medseg.shape import ActiveShapeModel, OrientationPrior, TripletPrior
-
     path = Path(path)
     meta_path = path / "model.json"
     if not meta_path.is_file():
@@ -155,7 +154,7 @@ def load_model(cls, path: Path):
     if version not in _READABLE_VERSIONS:
         raise ModelFileError(
             f"{path} has model format version {version!r} (written by medseg "
-            f"{meta.get('medseg_version', '?')}); this medseg {medseg.__version__} reads "
+            f"{meta.get('medseg_version', '?')}); this medseg {__version__} reads "
             f"versions {', '.join(map(str, _READABLE_VERSIONS))}: retrain the model or install "
             "the matching medseg"
         )
@@ -166,6 +165,8 @@ def load_model(cls, path: Path):
     if not isinstance(params, dict) or not set(params) <= set(_PARAMS):
         unknown = sorted(set(params) - set(_PARAMS)) if isinstance(params, dict) else params
         raise ModelFileError(f"{meta_path}: unknown or malformed model parameters {unknown!r}")
+    if isinstance(params.get("labels"), list):
+        params["labels"] = tuple(params["labels"])  # JSON has no tuples
     model = cls(**params)
     if version < _SINCE["refine_levels"]:
         model.refine_levels = 0  # saved before the refinement existed: the MRF's landmarks

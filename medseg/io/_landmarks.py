@@ -16,8 +16,8 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import ArrayLike
 
-from medseg._io_atomic import PathLike, atomic_write
-from medseg.errors import InputFileError, LandmarkFileError
+from medseg.errors import InputFileError, LandmarkFileError, ParameterError
+from medseg.io._atomic import PathLike, atomic_write
 
 __all__ = ["LANDMARK_SUFFIXES", "read_landmarks", "write_landmarks"]
 
@@ -248,9 +248,9 @@ def read_landmarks(
 def _check_points(points: ArrayLike) -> np.ndarray:
     points = np.asarray(points, dtype=float)
     if points.ndim != 2 or points.shape[1] != 3:
-        raise ValueError(f"`points` must have shape (N, 3) (mm, x-y-z), got {points.shape}")
+        raise ParameterError(f"`points` must have shape (N, 3) (mm, x-y-z), got {points.shape}")
     if not np.all(np.isfinite(points)):
-        raise ValueError("`points` must be finite")
+        raise ParameterError("`points` must be finite")
     return points
 
 
@@ -288,7 +288,7 @@ def write_landmarks(
     points = _check_points(points)
     labels = [str(i) for i in range(len(points))] if labels is None else [str(s) for s in labels]
     if len(labels) != len(points):
-        raise ValueError(f"{len(labels)} labels for {len(points)} points")
+        raise ParameterError(f"{len(labels)} labels for {len(points)} points")
     suffix = _landmark_suffix(path)
     if suffix == ".csv":
         buffer = io.StringIO()

@@ -8,8 +8,8 @@ import nibabel as nib
 import numpy as np
 import SimpleITK as sitk
 
-from medseg._io_checks import check_direction, is_nibabel
 from medseg.errors import ImageGeometryError
+from medseg.io._checks import check_direction, is_nibabel
 
 __all__ = ["from_nibabel", "to_nibabel", "as_input_type"]
 

@@ -1,0 +1,91 @@
+"""Farthest-point sampling: evenly spread subsets of a point set or of a mesh's vertices.
+
+Two distances, two names: :func:`farthest_point_sampling` is Euclidean (landmarks on a
+label surface); :func:`geodesic_farthest_point_sampling` measures along the surface
+(the matcher's samples, where a limb close to the torso must not look near).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike
+from sklearn.utils import check_random_state
+
+from medseg.geometry._geodesics import GeodesicSolver
+
+__all__ = ["farthest_point_sampling", "geodesic_farthest_point_sampling"]
+
+
+def farthest_point_sampling(
+    points: np.ndarray, n: int, *, start: int | None = None, random_state=None
+) -> np.ndarray:
+    """Indices of ``n`` points spread evenly by greedy farthest-point sampling (Euclidean).
+
+    Parameters
+    ----------
+    points : (M, 3) float array
+    n : int, ``n <= M``
+    start : int, optional
+        First index; default: the point farthest from the centroid (deterministic), or a
+        random one if ``random_state`` is given.
+
+    Returns
+    -------
+    (n,) int array
+    """
+    points = np.asarray(points, float)
+    if start is None:
+        if random_state is None:
+            start = int(np.argmax(((points - points.mean(0)) ** 2).sum(1)))
+        else:
+            start = int(check_random_state(random_state).randint(len(points)))
+    idx = np.empty(n, dtype=np.intp)
+    idx[0] = start
+    dist = ((points - points[start]) ** 2).sum(1)
+    for k in range(1, n):
+        nxt = int(np.argmax(dist))
+        idx[k] = nxt
+        dist = np.minimum(dist, ((points - points[nxt]) ** 2).sum(1))
+    return idx
+
+
+def geodesic_farthest_point_sampling(
+    vertices: ArrayLike,
+    faces: ArrayLike,
+    n_samples: int,
+    *,
+    geodesic: GeodesicSolver | None = None,
+    random_state=None,
+) -> np.ndarray:
+    """Farthest-point sampling of mesh vertices in geodesic distance (heat method).
+
+    Parameters
+    ----------
+    vertices : (V, 3) float array
+    faces : (F, 3) int array
+    n_samples : int
+        Number of vertices to pick (at most V).
+    geodesic : GeodesicSolver, optional
+        Reuse a factorised solver.
+    random_state : int, RandomState or None
+        Picks the first sample.
+
+    Returns
+    -------
+    idx : (n_samples,) int array
+        Vertex indices, in the order they were picked.
+    """
+    rng = check_random_state(random_state)
+    n = len(vertices)
+    n_samples = int(min(n_samples, n))
+    solver = geodesic if geodesic is not None else GeodesicSolver(vertices, faces)
+    idx = [int(rng.randint(n))]
+    dist = solver.distance(idx[0])
+    # restart from the farthest point of a random seed, so the set does not hinge on it
+    idx = [int(np.argmax(dist))]
+    dist = solver.distance(idx[0])
+    for _ in range(1, n_samples):
+        nxt = int(np.argmax(dist))
+        idx.append(nxt)
+        dist = np.minimum(dist, solver.distance(nxt))
+    return np.asarray(idx, dtype=np.int64)

@@ -1,0 +1,109 @@
+"""Several MRF solutions, each refined by the active shape search; the image picks one.
+
+A refined solution cannot be better than the configuration it starts from. After the MRF's
+optimum, each further solve makes the candidates near the earlier solutions' landmarks cost
+more, so that it lands on another configuration; every one is refined, and the segmenter
+keeps the one whose boundary profiles fit the image best (a pose-invariant check of the
+MRF's choice by the image).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from medseg.errors import ImageGeometryError
+from medseg.mrf import MRF, SolveResult, solve
+from medseg.reconstruction import check_distinct_landmarks
+from medseg.segmenter._result import Hypothesis
+from medseg.shape import ActiveShapeModel
+
+__all__ = ["refined_hypotheses", "collapsed", "check_not_collapsed", "margin"]
+
+# Each further MRF hypothesis adds this cost (nats) to every candidate within this distance
+# of the landmark's position in an earlier hypothesis, so the solver moves elsewhere.
+HYPOTHESIS_PENALTY = 5.0
+HYPOTHESIS_EXCLUSION_MM = 4.0
+
+
+def refined_hypotheses(
+    shape_model: ActiveShapeModel,
+    image,
+    positions: np.ndarray,
+    unaries: np.ndarray,
+    cliques: np.ndarray,
+    tables: np.ndarray,
+    first: SolveResult,
+    *,
+    n_hypotheses: int,
+    refine_levels: int,
+    solve_options: dict,
+) -> list[Hypothesis]:
+    """The MRF's optimum and ``n_hypotheses - 1`` solutions away from it, each refined.
+
+    Parameters
+    ----------
+    shape_model : ActiveShapeModel
+        Fitted; its search refines each solution.
+    image : SimpleITK image
+    positions : (N, L, 3) float array, mm
+        Candidate positions.
+    unaries, cliques, tables
+        The MRF (``(N, L)`` costs, ``(C, 3)`` cliques, ``(C, L, L, L)`` tables).
+    first : SolveResult
+        The MRF's optimum, already solved.
+    n_hypotheses, refine_levels : int
+    solve_options : dict
+        Keyword arguments of :func:`medseg.mrf.solve` for the further solves.
+    """
+    rows = np.arange(positions.shape[0])
+    penalised = np.array(unaries, dtype=float)
+    labels = np.asarray(first.x)
+    out = []
+    for k in range(int(n_hypotheses)):
+        if k:
+            earlier = positions[rows, labels]
+            near = np.linalg.norm(positions - earlier[:, None], axis=-1)
+            penalised[near < HYPOTHESIS_EXCLUSION_MM] += HYPOTHESIS_PENALTY
+            other = solve(MRF.from_triplets(penalised, cliques, tables), **solve_options)
+            labels = np.asarray(other.x)
+        chosen = positions[rows, labels]
+        if k and collapsed(chosen):
+            continue  # collapsed onto shared candidates: nothing to refine
+        found = shape_model.search(image, start=chosen, levels=int(refine_levels))
+        out.append(Hypothesis(labels, chosen, found.landmarks, found.profile_cost))
+    return out
+
+
+# Below this fraction of distinct positions the MRF's landmarks count as collapsed.
+_MIN_DISTINCT_FRACTION = 0.9
+
+
+def collapsed(points: np.ndarray) -> bool:
+    """Landmarks piled onto a few positions (or a plane): nothing a shape fit can start from.
+
+    Two landmarks sharing a candidate is a local ambiguity the shape model resolves; most of
+    them sharing a few is what detection gives on an image without the structure.
+    """
+    distinct = np.unique(points, axis=0)
+    return (
+        len(distinct) < _MIN_DISTINCT_FRACTION * len(points)
+        or np.linalg.matrix_rank(distinct - distinct.mean(0)) < 3
+    )
+
+
+def check_not_collapsed(chosen: np.ndarray) -> None:
+    if collapsed(chosen):
+        check_distinct_landmarks(chosen, "chosen landmarks")  # names two that coincide
+        raise ImageGeometryError(
+            "the chosen landmarks are coplanar: the image does not seem to show the trained "
+            "structure"
+        )
+
+
+def margin(costs: np.ndarray) -> np.ndarray:
+    """Per row: the second-smallest cost minus the smallest (0 for a single label)."""
+    costs = np.sort(np.asarray(costs, dtype=float), axis=1)
+    if costs.shape[1] < 2:
+        return np.zeros(len(costs))
+    margin = costs[:, 1] - costs[:, 0]
+    return np.where(np.isfinite(margin), margin, 0.0)
