@@ -177,8 +177,9 @@ def run_subprocess(
 def run_inprocess(
     model: Path, images: Path, labels: Path, n_images: int, interval: float, threads=None
 ):
-    from medseg.inference.cli import main
     from threadpoolctl import threadpool_limits
+
+    from medseg.inference.cli import main
 
     samples, stop = [], threading.Event()
     t0 = time.perf_counter()

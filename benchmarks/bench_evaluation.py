@@ -1,6 +1,6 @@
 """Wall time of the evaluation engine, serial against parallel folds.
 
-Runs :func:`evaluation.run_evaluation` on a cohort (default: the embedded phantom) into
+Runs :func:`medseg.evaluation.run_evaluation` on a cohort (default: the embedded phantom) into
 fresh folders under ``--out`` (default: a temporary folder), once per ``--n-jobs`` value,
 and prints the wall time, the speed-up over the first value, and the summary table of the
 last run. The numbers are identical across runs (same seed); only the time differs.

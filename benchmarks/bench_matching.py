@@ -2,11 +2,11 @@
 
 Protocol (``data/shapes/README.md``, Kim, Lipman & Funkhouser 2011): for a map T from A to
 B and each ground-truth row i, ``err_i = geodesic_B(T(A.vts[i]), B.vts[i]) / sqrt(area(B))``
-with heat-method geodesics on B; the mean over rows and pairs, the fraction of rows with
-``err <= t`` for a few thresholds, direct and symmetry-aware (per pair, the better of the
-direct and the mirrored ground truth). Also the log area ratio of matched facets (mean
-``|log(area(T(f)) / area(f))|`` on unit-area surfaces, over faces whose image is not
-degenerate, plus the fraction of degenerate images).
+with heat-method geodesics on B (:func:`medseg.matching._scoring.geodesic_errors`); the mean
+over rows and pairs, the fraction of rows with ``err <= t`` for a few thresholds, direct and
+symmetry-aware (per pair, the better of the direct and the mirrored ground truth). Also the
+log area ratio of matched facets (mean ``|log(area(T(f)) / area(f))|`` on unit-area surfaces,
+over faces whose image is not degenerate, plus the fraction of degenerate images).
 
 Methods, all in the same run on the same pairs:
 
@@ -44,6 +44,7 @@ import numpy as np
 
 from medseg.geometry import GeodesicSolver, face_areas
 from medseg.matching import match_surfaces, read_mesh
+from medseg.matching._scoring import geodesic_errors, read_vts
 
 THRESHOLDS = (0.0, 0.025, 0.05, 0.075, 0.1, 0.15, 0.2, 0.25)
 SETS = ("FAUST", "TOSCA_Isometric")
@@ -75,17 +76,14 @@ def _log_area_ratio(va, fa, vb, fb, forward) -> tuple[float, float]:
 
 
 def _score(vb, fb, gt_a, gt_b, gt_sym, maps: dict) -> dict:
+    if not maps:
+        return {}
     geo = GeodesicSolver(vb, fb)
-    scale = np.sqrt(face_areas(vb, fb).sum())
-    images = {name: fwd[gt_a] for name, fwd in maps.items()}
-    direct = {name: np.empty(len(gt_a)) for name in maps}
-    sym = {name: np.empty(len(gt_a)) for name in maps}
-    for gt, out in ((gt_b, direct), (gt_sym, sym)):
-        for src in np.unique(gt):
-            rows = np.flatnonzero(gt == src)
-            field = geo.distance(src)
-            for name in maps:
-                out[name][rows] = field[images[name][rows]] / scale
+    images = np.stack([fwd[gt_a] for fwd in maps.values()])
+    direct, sym = (
+        dict(zip(maps, geodesic_errors(vb, fb, gt, images, geodesic=geo), strict=True))
+        for gt in (gt_b, gt_sym)
+    )
     result = {}
     for name in maps:
         d, s = direct[name], sym[name]
@@ -138,9 +136,9 @@ def run(args: argparse.Namespace) -> None:
         pa, pb = folder / f"{a}.off", folder / f"{b}.off"
         va, fa = read_mesh(pa)
         vb, fb = read_mesh(pb)
-        gt_a = np.loadtxt(folder / "corres" / f"{a}.vts", dtype=np.int64) - 1
-        gt_b = np.loadtxt(folder / "corres" / f"{b}.vts", dtype=np.int64) - 1
-        gt_sym = np.loadtxt(folder / "corres" / f"{b}.sym.vts", dtype=np.int64) - 1
+        gt_a, gt_b, gt_sym = (
+            read_vts(folder / "corres" / f"{name}.vts") for name in (a, b, f"{b}.sym")
+        )
         maps, seconds, cpu, extra = {}, {}, {}, {}
         if "medseg" in methods:
             t0, c0 = time.perf_counter(), time.process_time()

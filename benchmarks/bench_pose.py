@@ -28,9 +28,9 @@ from pathlib import Path
 
 import numpy as np
 import SimpleITK as sitk
-from medseg.evaluation.perturbation import perturb_case, random_similarity
 
 from medseg.datasets import make_phantom_cohort
+from medseg.evaluation.perturbation import perturb_case, random_similarity
 from medseg.io import voxel_to_physical
 from medseg.segmenter import ShapePriorSegmenter, load_model
 

@@ -1,7 +1,12 @@
 """medseg evaluation stage: subject-grouped cross-validation with baselines, reports.
 
 * :func:`run_evaluation` (what ``medseg-evaluate`` calls): cohort -> folds -> report folder;
-* :mod:`medseg.evaluation.crossval`: folds, the resumable per-case runner (joblib / Dask);
+* :mod:`medseg.evaluation.folds`: folds by subject, their seeds, the cohort checks;
+* :mod:`medseg.evaluation.fold`: one fold's work (fit, segment, score, save predictions);
+* :mod:`medseg.evaluation.runner`: the resumable runner over folds (serial, joblib, Dask);
+* :mod:`medseg.evaluation.results`: the per-case CSV (columns, reading, resuming);
+* :mod:`medseg.evaluation.methods`: the method and baselines compared, built per fold;
+* :mod:`medseg.evaluation.references`: reference landmarks of each fold's cases;
 * :mod:`medseg.evaluation.baselines`: the active shape model;
 * :mod:`medseg.evaluation.perturbation`: pose perturbation of test cases;
 * :mod:`medseg.evaluation.report`: summary table, summary.json, figures;

@@ -5,7 +5,14 @@ from __future__ import annotations
 import argparse
 from collections.abc import Sequence
 
-from medseg._cli import EXIT_OK, parse_labels, run_cli
+from medseg._cli import (
+    EXIT_OK,
+    add_dataset_arguments,
+    command_parser,
+    load_dataset,
+    parse_labels,
+    run_cli,
+)
 from medseg.errors import MedsegError
 from medseg.progress import show_progress
 
@@ -14,25 +21,19 @@ def build_parser() -> argparse.ArgumentParser:
     from medseg.evaluation.evaluate import DEFAULT_PERTURBATION
     from medseg.evaluation.methods import METHOD_NAMES
 
-    parser = argparse.ArgumentParser(
-        prog="medseg-evaluate",
-        description=(
-            "Leave-one-subject-out or k-fold cross-validation (grouped by subject) of the "
-            "shape-prior segmenter and its baselines (detection without prior, active shape "
-            "model), with a pose-perturbation study. Writes a report folder: cases.csv, "
-            "summary.md, summary.json, boxplots, perturbation curves, overlays. Rerunning "
-            "on the same folder resumes."
-        ),
-    )
-    parser.add_argument(
-        "dataset", help="MSD / nnU-Net folder, CSV manifest, or 'phantom' (the embedded cohort)."
+    parser = command_parser(
+        "medseg-evaluate",
+        "Leave-one-subject-out or k-fold cross-validation (grouped by subject) of the "
+        "shape-prior segmenter and its baselines (detection without prior, active shape "
+        "model), with a pose-perturbation study. Writes a report folder: cases.csv, "
+        "summary.md, summary.json, boxplots, perturbation curves, overlays. Rerunning "
+        "on the same folder resumes.",
+        seed=True,
     )
     parser.add_argument("-o", "--output", required=True, help="Report folder.")
+    add_dataset_arguments(parser)
     parser.add_argument(
         "--folds", default="loo", help="'loo' or the number K of subject folds. Default: loo."
-    )
-    parser.add_argument(
-        "--label", default="1", help="Label(s) forming the structure, e.g. 1,2. Default: 1."
     )
     parser.add_argument(
         "--methods",
@@ -56,20 +57,12 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="Evaluate only the first N subjects. Default: all.",
     )
-    parser.add_argument(
-        "--phantom-subjects",
-        type=int,
-        default=20,
-        help="Subjects of the phantom cohort when DATASET is 'phantom'. Default: 20.",
-    )
-    parser.add_argument("--seed", type=int, default=0, help="Random seed. Default: 0.")
     parser.add_argument("--jobs", type=int, default=1, help="Folds in parallel. Default: 1.")
     parser.add_argument(
         "--scheduler",
         default=None,
         help="Address of a running Dask scheduler (tcp://host:port). Default: local.",
     )
-    parser.add_argument("-q", "--quiet", action="store_true", help="No progress bars.")
     return parser
 
 
@@ -99,22 +92,19 @@ def _angles(text: str) -> tuple[float, ...]:
 def _run(args: argparse.Namespace) -> int:
     from medseg.evaluation.evaluate import run_evaluation
 
-    from medseg.datasets import make_phantom_cohort
-
-    dataset = args.dataset
-    if dataset == "phantom":
-        dataset = make_phantom_cohort(args.phantom_subjects, random_state=args.seed)
+    # the arguments' text first: a typo is reported before the cohort is read
+    folds, labels, angles = _folds(args.folds), parse_labels(args.label), _angles(args.perturbation)
     out = run_evaluation(
-        dataset,
+        load_dataset(args),
         args.output,
-        folds=_folds(args.folds),
+        folds=folds,
         methods=[m.strip() for m in args.methods.split(",") if m.strip()],
-        labels=parse_labels(args.label),
+        labels=labels,
         n_landmarks=args.landmarks,
         seed=args.seed,
         n_jobs=args.jobs,
         scheduler=args.scheduler,
-        perturbation=_angles(args.perturbation),
+        perturbation=angles,
         max_subjects=args.max_subjects,
         progress=show_progress(args.quiet),
     )

@@ -15,33 +15,30 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
-from medseg.evaluation.metrics import landmark_errors, score_segmentation
 from tqdm.auto import tqdm
 
-from medseg._cli import EXIT_OK, run_cli
+from medseg._cli import EXIT_OK, command_parser, run_cli
 from medseg.datasets import make_phantom_cohort, write_cohort
 from medseg.errors import MedsegError
+from medseg.evaluation.metrics import landmark_errors, score_segmentation
 from medseg.io import select_labels, write_image
 from medseg.progress import show_progress
 from medseg.segmenter import ShapePriorSegmenter
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="medseg-demo",
-        description=(
-            "Train on a synthetic phantom cohort and segment held-out phantom cases; prints "
-            "Dice, HD95 and landmark error with and without the shape prior."
-        ),
+    parser = command_parser(
+        "medseg-demo",
+        "Train on a synthetic phantom cohort and segment held-out phantom cases; prints "
+        "Dice, HD95 and landmark error with and without the shape prior.",
+        seed=True,
     )
     parser.add_argument(
         "-o", "--output", default="medseg-demo", help="Folder to write. Default: medseg-demo."
     )
     parser.add_argument("--subjects", type=int, default=20, help="Phantom subjects. Default: 20.")
     parser.add_argument("--test", type=int, default=5, help="Held-out subjects. Default: 5.")
-    parser.add_argument("--seed", type=int, default=0, help="Random seed. Default: 0.")
     parser.add_argument("--jobs", type=int, default=2, help="Parallel jobs. Default: 2.")
-    parser.add_argument("-q", "--quiet", action="store_true", help="No progress bars.")
     return parser
 
 

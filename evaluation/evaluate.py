@@ -13,11 +13,12 @@ from collections.abc import Iterable, Sequence
 from pathlib import Path
 
 import numpy as np
-from medseg.evaluation.crossval import check_cohort, run_folds
-from medseg.evaluation.methods import METHOD_NAMES, MethodSpec, default_methods, resolve_methods
-from medseg.evaluation.report import write_report
 
 from medseg.errors import CohortError
+from medseg.evaluation.folds import check_cohort
+from medseg.evaluation.methods import METHOD_NAMES, MethodSpec, default_methods, resolve_methods
+from medseg.evaluation.report import write_report
+from medseg.evaluation.runner import run_folds
 
 __all__ = ["run_evaluation", "resolve_cohort", "DEFAULT_PERTURBATION"]
 

@@ -1,6 +1,6 @@
 """The evaluation report: tables, JSON summary and figures from the per-case CSV.
 
-:func:`write_report` reads ``cases.csv`` (written by :func:`medseg.evaluation.crossval.run_folds`)
+:func:`write_report` reads ``cases.csv`` (written by :func:`medseg.evaluation.runner.run_folds`)
 and writes, next to it:
 
 * ``summary.md``: per method (unperturbed cases) the number of cases, Dice, HD95, ASSD,
@@ -33,23 +33,15 @@ from pathlib import Path
 
 import numpy as np
 import SimpleITK as sitk
-from medseg.evaluation.crossval import prediction_path, read_results
 
 from medseg.errors import InputFileError
+from medseg.evaluation.results import SCORES, prediction_path, read_results
 from medseg.io import atomic_write, read_image, select_labels, voxel_to_physical
 
 __all__ = ["summarise", "write_report", "METRICS"]
 
 #: Metrics summarised per method, in table order.
-METRICS = (
-    "dice",
-    "hd95",
-    "assd",
-    "landmark_error_mm",
-    "landmark_error_vox",
-    "gap",
-    "seconds",
-)
+METRICS = (*SCORES, "seconds")
 _HEADERS = {
     "dice": "Dice",
     "hd95": "HD95 (mm)",
@@ -85,7 +77,7 @@ def summarise(rows: list[dict]) -> dict:
     Parameters
     ----------
     rows : list of dict
-        Rows of :func:`medseg.evaluation.crossval.read_results`.
+        Rows of :func:`medseg.evaluation.results.read_results`.
 
     Returns
     -------

@@ -9,7 +9,7 @@ from pathlib import Path
 
 from tqdm.auto import tqdm
 
-from medseg._cli import EXIT_FAILURE, EXIT_OK, naming, run_cli
+from medseg._cli import EXIT_FAILURE, EXIT_OK, command_parser, naming, run_cli
 from medseg.errors import InputFileError, MedsegError
 from medseg.io import IMAGE_SUFFIXES, atomic_write, image_suffix, write_image, write_landmarks
 from medseg.progress import show_progress
@@ -20,13 +20,11 @@ SURFACE_FORMATS = ("vtk", "vtp", "stl", "ply")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="medseg-segment",
-        description=(
-            "Segment an image, or every image of a folder, with a model from medseg-train. "
-            "The label map is written in the input's exact geometry (size, spacing, origin, "
-            "direction). nnU-Net style names are understood: case_0000.nii.gz -> case.nii.gz."
-        ),
+    parser = command_parser(
+        "medseg-segment",
+        "Segment an image, or every image of a folder, with a model from medseg-train. "
+        "The label map is written in the input's exact geometry (size, spacing, origin, "
+        "direction). nnU-Net style names are understood: case_0000.nii.gz -> case.nii.gz.",
     )
     parser.add_argument("-m", "--model", required=True, help="Model folder from medseg-train.")
     parser.add_argument("-i", "--input", required=True, help="Image file or folder of images.")
@@ -58,7 +56,6 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="Detection only: each landmark at its best candidate (a baseline). Default: off.",
     )
-    parser.add_argument("-q", "--quiet", action="store_true", help="No progress bars.")
     return parser
 
 

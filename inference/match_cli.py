@@ -9,23 +9,22 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from medseg._cli import run_cli
+from medseg._cli import command_parser, run_cli
 from medseg.io import atomic_write, check_not_protected
 from medseg.matching import check_mesh, match_surfaces, read_mesh
 from medseg.progress import show_progress
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="medseg-match",
-        description=(
-            "Match surface A onto surface B with third-order graph matching (Zeng et al., "
-            "CVPR 2010): sparse matching of farthest-point samples, dense candidates from "
-            "Möbius maps, dense matching, spectral refinement. Writes one line per vertex of "
-            "A with the 0-based index of its match on B. Both surfaces must be genus-0 "
-            "triangle meshes (closed, or with holes); units do not matter (each surface is "
-            "scaled to unit area)."
-        ),
+    parser = command_parser(
+        "medseg-match",
+        "Match surface A onto surface B with third-order graph matching (Zeng et al., "
+        "CVPR 2010): sparse matching of farthest-point samples, dense candidates from "
+        "Möbius maps, dense matching, spectral refinement. Writes one line per vertex of "
+        "A with the 0-based index of its match on B. Both surfaces must be genus-0 "
+        "triangle meshes (closed, or with holes); units do not matter (each surface is "
+        "scaled to unit area).",
+        seed=True,
     )
     parser.add_argument("source", help="Surface A (.off, .ply, .obj, .stl, .vtk, .vtp).")
     parser.add_argument("target", help="Surface B (same formats).")
@@ -59,8 +58,6 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="Skip the spectral (ZoomOut) refinement of the dense map (default: refine).",
     )
-    parser.add_argument("--seed", type=int, default=0, help="Random seed (default: 0).")
-    parser.add_argument("-q", "--quiet", action="store_true", help="No progress bars.")
     return parser
 
 

@@ -1,4 +1,4 @@
-"""Shared plumbing for the command-line tools: one-line errors, exit codes, argument types.
+"""Shared plumbing for the command-line tools: parsers, one-line errors, exit codes, types.
 
 Only the stage packages (``medseg.training``, ``medseg.inference``, ``medseg.evaluation``)
 and ``python -m`` entry points import this; the library's parts do not (an import contract).
@@ -18,6 +18,54 @@ from medseg.errors import MedsegError
 EXIT_OK = 0
 EXIT_FAILURE = 1  # the run went through but some items failed (e.g. one file of a batch)
 EXIT_USAGE = 2  # bad input: nothing was done
+
+
+def command_parser(prog: str, description: str, *, seed: bool = False) -> argparse.ArgumentParser:
+    """The parser of a medseg command, with the options every command shares.
+
+    ``-q/--quiet`` (no progress bars) and, for a command that draws random numbers,
+    ``--seed`` (default 0). They stand in a group of their own ("common options"), which
+    ``--help`` lists after the command's own options.
+    """
+    parser = argparse.ArgumentParser(prog=prog, description=description)
+    common = parser.add_argument_group("common options")
+    if seed:
+        common.add_argument("--seed", type=int, default=0, help="Random seed. Default: 0.")
+    common.add_argument("-q", "--quiet", action="store_true", help="No progress bars.")
+    return parser
+
+
+def add_dataset_arguments(parser: argparse.ArgumentParser) -> None:
+    """DATASET, ``--label`` and ``--phantom-subjects``: the cohort a command reads.
+
+    :func:`load_dataset` turns them into a cohort, :func:`parse_labels` the label text into
+    labels. The parser needs ``--seed`` too (the phantom's seed).
+    """
+    parser.add_argument(
+        "dataset",
+        help="MSD / nnU-Net folder (dataset.json), CSV manifest, or 'phantom' (the embedded "
+        "synthetic cohort).",
+    )
+    parser.add_argument(
+        "--label",
+        default="1",
+        help="Label(s) forming the structure, comma-separated, e.g. 1,2. Default: 1.",
+    )
+    parser.add_argument(
+        "--phantom-subjects",
+        type=int,
+        default=20,
+        help="Subjects of the phantom cohort when DATASET is 'phantom'. Default: 20.",
+    )
+
+
+def load_dataset(args: argparse.Namespace):
+    """The cohort of :func:`add_dataset_arguments`: the phantom, or a folder or manifest."""
+    from medseg.datasets import load_cohort, make_phantom_cohort
+
+    if args.dataset == "phantom":
+        return make_phantom_cohort(args.phantom_subjects, random_state=args.seed)
+    return load_cohort(args.dataset)
 
 
 def run_cli(

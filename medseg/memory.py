@@ -138,7 +138,14 @@ def format_bytes(nbytes: float) -> str:
     return f"{mib:.1f} MiB" if mib >= 0.1 else f"{mib:.3g} MiB"
 
 
-def check_memory(nbytes: float, *, what: str, hint: str, limit: float | None = None) -> None:
+def check_memory(
+    nbytes: float,
+    *,
+    what: str,
+    hint: str,
+    limit: float | None = None,
+    raise_with: str = f"memory_limit_gb=..., or the environment variable {ENV_VAR}",
+) -> None:
     """Refuse a computation whose estimated memory exceeds the limit.
 
     Parameters
@@ -154,6 +161,8 @@ def check_memory(nbytes: float, *, what: str, hint: str, limit: float | None = N
     limit : float, optional
         Limit in bytes; default :func:`memory_limit_bytes` (``MEDSEG_MEMORY_LIMIT_GB`` or
         half the physical memory).
+    raise_with : str
+        How the caller raises the limit (an argument, the environment variable).
 
     Raises
     ------
@@ -166,8 +175,7 @@ def check_memory(nbytes: float, *, what: str, hint: str, limit: float | None = N
         raise ResourceLimitError(
             f"{what} would need about {format_bytes(nbytes)} of memory, above the limit of "
             f"{format_bytes(limit_bytes)} ({source}). To lower it: {hint}. If the machine "
-            f"has the memory, raise the limit (memory_limit_gb=..., or the environment "
-            f"variable {ENV_VAR})."
+            f"has the memory, raise the limit ({raise_with})."
         )
 
 

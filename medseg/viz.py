@@ -1,17 +1,14 @@
 """Figures medseg can write: a slice of an image next to, and overlaid with, its label.
 
 Rendering uses matplotlib's Agg backend (no display needed) and the file is written
-atomically. Run ``python -m medseg.viz docs/phantom.png`` to draw a few subjects of the
-synthetic phantom cohort.
+atomically. ``python -m medseg.evaluation.phantom_figure docs/phantom.png`` draws a few
+subjects of the synthetic phantom cohort with :func:`save_cohort_png`.
 """
 
 from __future__ import annotations
 
-import argparse
 import io as _bytes_io
 import os
-import sys
-from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -20,7 +17,7 @@ import SimpleITK as sitk
 from medseg.errors import ImageGeometryError, InputFileError, MedsegError, ParameterError
 from medseg.io import atomic_write, physical_to_voxel, read_image, read_label
 
-__all__ = ["plot_slice", "save_slice_png", "save_cohort_png", "main"]
+__all__ = ["plot_slice", "save_slice_png", "save_cohort_png"]
 
 _AXIS_NAMES = {0: "z", 1: "y", 2: "x"}
 
@@ -229,35 +226,3 @@ def save_cohort_png(
         title = f"{case.case_id}, {_AXIS_NAMES[axis]} = {index}"
         _draw(row, image2d, label2d, aspect, title, points2d)
     return _save_figure(fig, path, dpi)
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    """Draw phantom subjects: ``python -m medseg.viz OUT.png [--n-cases 3] [--seed 0]``."""
-    from medseg._cli import run_cli
-
-    parser = argparse.ArgumentParser(
-        prog="python -m medseg.viz",
-        description="Draw slices of synthetic phantom subjects with their labels as a PNG.",
-    )
-    parser.add_argument("output", type=Path, help="PNG file to write")
-    parser.add_argument("--n-cases", type=int, default=3, help="subjects to draw (default: 3)")
-    parser.add_argument("--seed", type=int, default=0, help="phantom random_state (default: 0)")
-    parser.add_argument(
-        "--anisotropic", action="store_true", help="1 x 1 x 2 mm phantom (default: 1 mm)"
-    )
-    parser.add_argument("--axis", type=int, default=0, help="array axis to cut (default: 0, z)")
-
-    def body(args: argparse.Namespace) -> int:
-        from medseg.datasets import make_phantom_cohort
-
-        cohort = make_phantom_cohort(
-            args.n_cases, anisotropic=args.anisotropic, random_state=args.seed
-        )
-        save_cohort_png(cohort, args.output, n_cases=args.n_cases, axis=args.axis)
-        return 0
-
-    return run_cli(body, parser, argv)
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -15,6 +15,11 @@ if os.environ.get("CI"):
     settings.load_profile("ci")
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
+#: Set (to anything but empty or 0) where the real data must be present, as in CI
+#: (``.ci/run``): a missing data folder then fails the tests that need it instead of
+#: skipping them, so a CI run without the data cannot pass.
+REQUIRE_DATA = os.environ.get("MEDSEG_REQUIRE_DATA", "") not in ("", "0")
+_DATA_FIXTURES = {"data_root", "hippocampus_dir", "shapes_dir"}
 
 
 def _data_root() -> Path:
@@ -22,12 +27,33 @@ def _data_root() -> Path:
     return Path(env) if env else REPO_ROOT.parent / "shared" / "data"
 
 
+def _missing(reason: str) -> None:
+    if REQUIRE_DATA:
+        pytest.fail(f"{reason} (MEDSEG_REQUIRE_DATA is set, so this is a failure)")
+    pytest.skip(reason)
+
+
+def pytest_collection_modifyitems(config, items):
+    """Every test that uses the real data must carry the ``data`` mark (``-m "not data"``
+    then really leaves the data out); an unmarked one is a collection error."""
+    unmarked = [
+        item.nodeid
+        for item in items
+        if _DATA_FIXTURES & set(getattr(item, "fixturenames", ()))
+        and item.get_closest_marker("data") is None
+    ]
+    if unmarked:
+        raise pytest.UsageError(
+            "tests using the real data lack @pytest.mark.data: " + ", ".join(unmarked)
+        )
+
+
 @pytest.fixture(scope="session")
 def data_root() -> Path:
     """Root of the real data (``MEDSEG_DATA`` or ``../shared/data``); skips if absent."""
     root = _data_root()
     if not root.is_dir():
-        pytest.skip(
+        _missing(
             f"real data not found at {root}: set MEDSEG_DATA to the folder holding "
             "hippocampus/ and shapes/ to run this test"
         )
@@ -38,7 +64,7 @@ def data_root() -> Path:
 def hippocampus_dir(data_root: Path) -> Path:
     path = data_root / "hippocampus"
     if not (path / "dataset.json").is_file():
-        pytest.skip(f"hippocampus cohort not found at {path}")
+        _missing(f"hippocampus cohort not found at {path}")
     return path
 
 
@@ -46,5 +72,5 @@ def hippocampus_dir(data_root: Path) -> Path:
 def shapes_dir(data_root: Path) -> Path:
     path = data_root / "shapes"
     if not path.is_dir():
-        pytest.skip(f"FAUST / TOSCA meshes not found at {path}")
+        _missing(f"FAUST / TOSCA meshes not found at {path}")
     return path

@@ -25,10 +25,6 @@ import pytest
 import SimpleITK as sitk
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from medseg.evaluation.cli import main as evaluate_main
-from medseg.inference.cli import main as segment_main
-from medseg.inference.match_cli import main as match_main
-from medseg.training.cli import main as train_main
 
 from medseg import io as mio
 from medseg.datasets import make_phantom_cohort, write_cohort
@@ -40,8 +36,12 @@ from medseg.errors import (
     MedsegError,
     MeshError,
 )
+from medseg.evaluation.cli import main as evaluate_main
+from medseg.inference.cli import main as segment_main
+from medseg.inference.match_cli import main as match_main
 from medseg.matching import read_mesh, write_mesh
 from medseg.segmenter import ShapePriorSegmenter, load_model
+from medseg.training.cli import main as train_main
 
 REPO = Path(__file__).resolve().parents[1]
 SIZE = 40

@@ -22,10 +22,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 import SimpleITK as sitk
-from medseg.evaluation.crossval import COLUMNS, read_results
-from medseg.inference.cli import main as segment_main
 
 from medseg.datasets import make_phantom_cohort
+from medseg.evaluation.results import COLUMNS, read_results
+from medseg.inference.cli import main as segment_main
 from medseg.io import read_image, read_landmarks, write_image
 from medseg.segmenter import ShapePriorSegmenter
 

@@ -13,20 +13,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 import SimpleITK as sitk
-from medseg.evaluation.crossval import (
-    COLUMNS,
-    check_cohort,
-    fold_seed,
-    make_folds,
-    read_results,
-    run_folds,
-)
-from medseg.evaluation.methods import MethodSpec
-from medseg.evaluation.perturbation import perturb_case, random_similarity
 from sklearn.utils import check_random_state
 
 from medseg.datasets import Case, Cohort
 from medseg.errors import CohortError, LabelError, MedsegError
+from medseg.evaluation.folds import check_cohort, fold_seed, make_folds
+from medseg.evaluation.methods import MethodSpec
+from medseg.evaluation.perturbation import perturb_case, random_similarity
+from medseg.evaluation.results import COLUMNS, read_results
+from medseg.evaluation.runner import run_folds
 from medseg.io import voxel_to_physical
 
 SIZE = 20
@@ -277,7 +272,7 @@ def test_parallel_runs_equal_the_serial_run(tmp_path):
 
 
 def test_unreachable_scheduler_is_a_clear_error(tmp_path, monkeypatch):
-    monkeypatch.setattr("medseg.evaluation.crossval.DASK_CONNECT_TIMEOUT", "1s")
+    monkeypatch.setattr("medseg.evaluation.runner.DASK_CONNECT_TIMEOUT", "1s")
     cohort = tiny_cohort(n_subjects=6, per_subject=1)
     with pytest.raises(MedsegError, match="Dask scheduler"):
         run_folds(cohort, _specs(), tmp_path, scheduler="tcp://127.0.0.1:9")

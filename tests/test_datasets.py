@@ -54,6 +54,7 @@ def _msd_folder(root: Path, case_ids, *, channel: bool, labels=None, training=No
 # ----------------------------------------------------------------------------- real data
 
 
+@pytest.mark.data
 def test_hippocampus_cohort_with_subject_grouping(hippocampus_dir):
     cohort = load_cohort(hippocampus_dir)
     assert len(cohort) == 199

@@ -14,6 +14,7 @@ import pytest
 import SimpleITK as sitk
 from scipy import ndimage
 from scipy.spatial.transform import Rotation
+from sklearn.base import BaseEstimator, clone
 
 from medseg.detection import (
     CandidateSet,
@@ -33,6 +34,7 @@ from medseg.errors import (
     MedsegError,
     ModelFileError,
     NotFittedError,
+    ParameterError,
     ResourceLimitError,
 )
 from medseg.io import physical_to_voxel, voxel_to_physical
@@ -349,7 +351,7 @@ def test_trees_grow_on_at_most_max_tree_samples_rows(blobs, small_settings):
     assert all(t.tree_.n_node_samples[0] <= 40 for t in capped.region_forest_.estimators_)
     for forest in full.forests_:
         assert all(tree.tree_.n_node_samples[0] > 40 for tree in forest.estimators_)
-    with pytest.raises(MedsegError, match="max_tree_samples"):
+    with pytest.raises(ParameterError, match="max_tree_samples"):
         LandmarkDetector(max_tree_samples=0, **kwargs).fit(images, lms)
 
 
@@ -422,12 +424,33 @@ def test_bad_input_errors(fitted, blobs, small_settings):
         fitted.candidates(blobs[0][0], mask=np.zeros((36, 36, 36), bool))
     with pytest.raises(ImageGeometryError, match="shape"):
         fitted.candidates(blobs[0][0], mask=np.ones((10, 36, 36), bool))
-    with pytest.raises(MedsegError, match="mode"):
+    with pytest.raises(ParameterError, match="mode"):
         LandmarkDetector(mode="joint").fit([blobs[0][0]], [blobs[0][1]])
+    with pytest.raises(ParameterError, match="n_estimators"):
+        LandmarkDetector(n_estimators=0).fit([blobs[0][0]], [blobs[0][1]])
+    with pytest.raises(ParameterError, match="stride"):
+        fitted.candidates(blobs[0][0], stride=0)
     with pytest.raises(MedsegError, match="landmarks"):
         LandmarkDetector(features=small_settings).fit(
             [blobs[0][0], blobs[1][0]], [blobs[0][1], blobs[1][1][:3]]
         )
+
+
+def test_detector_is_a_scikit_learn_estimator(fitted, small_settings):
+    assert isinstance(fitted, BaseEstimator)
+    copy = clone(fitted)
+    assert not hasattr(copy, "forests_") and not hasattr(copy, "n_landmarks_")
+    assert copy.get_params() == fitted.get_params()
+    assert copy.features == small_settings and copy.auto_context
+    with pytest.raises(ValueError, match="colour"):
+        copy.set_params(colour="red")
+    assert copy.set_params(n_estimators=5).n_estimators == 5 and fitted.n_estimators == 12
+    assert repr(LandmarkDetector(mode="multiclass")) == "LandmarkDetector(mode='multiclass')"
+    # __init__ only stores: a bad value is refused by fit, as a ValueError too
+    bad = LandmarkDetector(min_samples_leaf=0)
+    assert bad.min_samples_leaf == 0
+    with pytest.raises(ValueError, match="min_samples_leaf"):
+        bad.fit([], [])
 
 
 def test_feature_maps_above_the_memory_limit_are_refused(fitted, blobs, monkeypatch):
@@ -472,6 +495,10 @@ def test_save_load_roundtrip(fitted, blobs, tmp_path):
     fitted.save(path)
     loaded = LandmarkDetector.load(path)
     assert loaded.features == fitted.features and loaded.mode == fitted.mode
+    # every constructor parameter is written, the feature settings as a plain dictionary
+    params = json.loads((path / "detector.json").read_text())["params"]
+    assert set(params) == set(fitted.get_params())
+    assert params["features"] == fitted.features.to_dict()
     a = fitted.candidates(blobs[7][0], n_candidates=5)
     b = loaded.candidates(blobs[7][0], n_candidates=5)
     np.testing.assert_array_equal(a.positions, b.positions)

@@ -205,6 +205,7 @@ def test_write_image_like_nibabel_writes_same_flavour(tmp_path):
     assert_same_geometry(mio.read_image(path), image)
 
 
+@pytest.mark.data
 def test_real_hippocampus_image_same_through_itk_and_nibabel(hippocampus_dir):
     path = sorted((hippocampus_dir / "imagesTr").glob("*.nii*"))[0]
     via_itk = mio.read_image(path)
@@ -215,6 +216,7 @@ def test_real_hippocampus_image_same_through_itk_and_nibabel(hippocampus_dir):
     )
 
 
+@pytest.mark.data
 def test_real_hippocampus_labels_match_their_images(hippocampus_dir):
     for path in sorted((hippocampus_dir / "imagesTr").glob("*.nii.gz"))[:5]:
         image = mio.read_image(path)

@@ -7,11 +7,11 @@ import math
 import numpy as np
 import pytest
 import SimpleITK as sitk
-from medseg.evaluation.metrics import assd, dice, hd95, landmark_errors, score_segmentation
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from medseg.errors import ImageGeometryError
+from medseg.evaluation.metrics import assd, dice, hd95, landmark_errors, score_segmentation
 from medseg.io import voxel_to_physical
 
 SPACING = (0.5, 1.0, 2.0)  # x, y, z

@@ -11,14 +11,14 @@ import nibabel as nib
 import numpy as np
 import pytest
 import SimpleITK as sitk
-from medseg.inference.cli import main as segment_main
-from medseg.training.cli import main as train_main
 
 import medseg
 from medseg.datasets import make_phantom_cohort, write_cohort
 from medseg.errors import CohortError, ModelFileError, NotFittedError
+from medseg.inference.cli import main as segment_main
 from medseg.io import image_geometry, read_image, read_landmarks
 from medseg.segmenter import ShapePriorSegmenter, load_model
+from medseg.training.cli import main as train_main
 
 SMALL = dict(n_landmarks=12, size=48)
 
@@ -63,10 +63,10 @@ def test_inference_after_detection_assumes_no_pose(fitted, cohort):
     solver give the identical choice. Not asserted: the handedness term and the active-shape
     refinement, which read the resampled image (its gradients and profiles move a little
     with the interpolation), nor detection; they are measured by the perturbation study."""
-    from medseg.evaluation.perturbation import PoseChange, perturb_case
     from scipy.spatial.transform import Rotation
 
     from medseg.detection import CandidateSet
+    from medseg.evaluation.perturbation import PoseChange, perturb_case
     from medseg.io import physical_to_voxel
 
     image, label = cohort[7].load_image(), cohort[7].load_label()

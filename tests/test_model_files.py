@@ -22,11 +22,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 import skops.io as sio
-from medseg.inference.cli import main as segment_main
 from test_bad_inputs import _tiny
 
 from medseg.detection import LandmarkDetector
 from medseg.errors import InputFileError, ModelFileError
+from medseg.inference.cli import main as segment_main
 from medseg.io import _archive as _io_archive
 from medseg.segmenter import load_model
 

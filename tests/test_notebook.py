@@ -65,16 +65,35 @@ def test_quickstart_runs_on_the_phantom(tmp_path, monkeypatch):
     # trained, saved, segmented with a certified MRF solution
     assert (tmp_path / "work" / "model").is_dir()
     dice = float(re.search(r": Dice ([0-9.]+), HD95", out).group(1))
-    assert 0.0 <= dice <= 1.0
     gap = float(re.search(r"MRF gap ([-+0-9.e]+)", out).group(1))
+    error = float(re.search(r"landmark error ([0-9.]+) mm \(", out).group(1))
     assert gap >= 0.0
     # the overlay, the 3D view and the cross-validation plot are figures
     assert sum(_images(c) for c in code) >= 3
     # every case scored once by each method, in subject-grouped folds
+    cv = {}
     for method in ("detection", "shape_prior"):
-        match = re.search(rf"{method}: (\d+) cases, mean Dice ([0-9.]+)", out)
+        match = re.search(
+            rf"{method}: (\d+) cases, mean Dice ([0-9.]+), mean landmark error ([0-9.]+) mm", out
+        )
         assert match and int(match.group(1)) == 11
+        cv[method] = float(match.group(2)), float(match.group(3))
     assert (tmp_path / "work" / "crossval" / "cases.csv").is_file()
+    # What these sizes measure (phantom, FAST, seed 0): the held-out case phantom_010 has
+    # Dice 0.471, landmark error 13.40 mm, MRF gap 7.6e-04; the 2-fold cross-validation of
+    # the 11 cases has mean Dice 0.509 (shape_prior) and 0.292 (detection), mean landmark
+    # error 11.99 and 12.69 mm. One case is one draw: other fits (more trees, candidates or
+    # training cases) gave it Dice 0.16 to 0.85, so its bounds are loose. The means over 11
+    # cases moved by 0.006 from 6 to 10 candidates: the prior must keep most of its gain.
+    # At 8 landmarks, 3 trees and 6 candidates the landmark errors are near chance (the
+    # case's landmarks lie 10.6 mm from their centroid, shuffled they are 13.9 mm off): the
+    # ceilings catch a wrong frame (an LPS/RAS flip is 19 mm off, voxel indices 43 mm), not
+    # a worse detector.
+    assert dice >= 0.30
+    assert error <= 16.0
+    assert cv["shape_prior"][0] >= 0.42
+    assert cv["shape_prior"][0] - cv["detection"][0] >= 0.12
+    assert cv["shape_prior"][1] <= 15.0 and cv["detection"][1] <= 15.0
     # nothing written beside the notebook
     assert sorted(p.name for p in NOTEBOOK.parent.iterdir()) == ["quickstart.ipynb"]
 

@@ -8,8 +8,8 @@ import SimpleITK as sitk
 from scipy.spatial.transform import Rotation
 
 from medseg.detection import gradient_directions
-from medseg.errors import MedsegError, NotFittedError
-from medseg.io import voxel_to_physical
+from medseg.errors import MedsegError, ModelFileError, NotFittedError
+from medseg.io import load_arrays, save_arrays, voxel_to_physical
 from medseg.shape import OrientationPrior, select_cliques, triangle_orientation
 
 REFLECT = np.diag([-1.0, 1.0, 1.0])
@@ -89,20 +89,24 @@ def test_orientation_prior_penalises_the_mirror_labelling_only():
     np.testing.assert_allclose(one, manual, rtol=1e-5, atol=1e-6)
 
 
-def test_orientation_prior_state_round_trip_and_errors():
+def test_orientation_prior_save_load_round_trip_and_errors(tmp_path):
     shapes, normals = _ellipsoid_shapes(6, seed=2)
     cliques = select_cliques(shapes[0], method="knn")
     with pytest.raises(NotFittedError):
         OrientationPrior().potentials(shapes[0], normals[0])
     prior = OrientationPrior().fit(shapes, normals, cliques=cliques)
-    again = OrientationPrior.from_state(prior.state())
+    again = OrientationPrior.load(prior.save(tmp_path / "orientation.npz"))
     np.testing.assert_array_equal(
         again.potentials(shapes[1], normals[1]), prior.potentials(shapes[1], normals[1])
     )
-    bad = prior.state()
-    bad["reference"] = bad["reference"][:-1]
-    with pytest.raises(ValueError, match="inconsistent"):
-        OrientationPrior.from_state(bad)
+    header, arrays = load_arrays(tmp_path / "orientation.npz", what="test")
+    arrays["reference"] = arrays["reference"][:-1]
+    save_arrays(tmp_path / "bad.npz", arrays, header=header)
+    with pytest.raises(ModelFileError, match="inconsistent"):
+        OrientationPrior.load(tmp_path / "bad.npz")
+    save_arrays(tmp_path / "other.npz", arrays, header={"format": "x", "format_version": 1})
+    with pytest.raises(ModelFileError, match="not a medseg.shape.OrientationPrior"):
+        OrientationPrior.load(tmp_path / "other.npz")
     with pytest.raises(ValueError, match="shape"):
         OrientationPrior().fit(shapes, normals[:, :5], cliques=cliques)
     with pytest.raises(ValueError, match="indices"):

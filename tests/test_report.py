@@ -8,14 +8,14 @@ import math
 
 import numpy as np
 import pytest
-from medseg.evaluation import run_evaluation
-from medseg.evaluation.crossval import COLUMNS
-from medseg.evaluation.methods import MethodSpec
-from medseg.evaluation.report import summarise, write_report
 from test_crossval import ThresholdMethod, tiny_cohort
 
 from medseg.datasets import Cohort
 from medseg.errors import CohortError, InputFileError, LabelError
+from medseg.evaluation import run_evaluation
+from medseg.evaluation.methods import MethodSpec
+from medseg.evaluation.report import summarise, write_report
+from medseg.evaluation.results import COLUMNS
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 

@@ -10,12 +10,14 @@ from collections.abc import Sequence
 
 from medseg._cli import (
     EXIT_OK,
+    add_dataset_arguments,
+    command_parser,
+    load_dataset,
     non_negative_float,
     parse_labels,
     positive_int,
     run_cli,
 )
-from medseg.datasets import load_cohort, make_phantom_cohort
 from medseg.progress import show_progress
 from medseg.segmenter import ShapePriorSegmenter
 
@@ -26,24 +28,16 @@ _DEFAULT = {
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="medseg-train",
-        description=(
-            "Train a segmentation model (landmarks in correspondence, one Random-Forest "
-            "detector per landmark, a pose-invariant triplet shape prior) from an MSD / "
-            "nnU-Net dataset folder, a CSV manifest, or 'phantom' (the embedded synthetic "
-            "cohort)."
-        ),
-    )
-    parser.add_argument(
-        "dataset", help="MSD / nnU-Net folder (dataset.json), CSV manifest, or 'phantom'."
+    parser = command_parser(
+        "medseg-train",
+        "Train a segmentation model (landmarks in correspondence, one Random-Forest "
+        "detector per landmark, a pose-invariant triplet shape prior) from an MSD / "
+        "nnU-Net dataset folder, a CSV manifest, or 'phantom' (the embedded synthetic "
+        "cohort).",
+        seed=True,
     )
     parser.add_argument("-o", "--output", required=True, help="Model folder to write.")
-    parser.add_argument(
-        "--label",
-        default="1",
-        help="Label(s) forming the structure, comma-separated, e.g. 1,2. Default: 1.",
-    )
+    add_dataset_arguments(parser)
     parser.add_argument(
         "--landmarks",
         type=int,
@@ -84,26 +78,15 @@ def build_parser() -> argparse.ArgumentParser:
         help="MRF solutions refined per image; the one whose boundary profiles fit the image "
         f"best is kept. Default: {_DEFAULT['n_hypotheses']}.",
     )
-    parser.add_argument("--seed", type=int, default=0, help="Random seed. Default: 0.")
     parser.add_argument(
         "--jobs", type=positive_int, default=1, help="Parallel jobs for the forests. Default: 1."
     )
-    parser.add_argument(
-        "--phantom-subjects",
-        type=int,
-        default=20,
-        help="Subjects of the phantom cohort when DATASET is 'phantom'. Default: 20.",
-    )
-    parser.add_argument("-q", "--quiet", action="store_true", help="No progress bars.")
     return parser
 
 
 def _run(args: argparse.Namespace) -> int:
     labels = parse_labels(args.label)
-    if args.dataset == "phantom":
-        cohort = make_phantom_cohort(args.phantom_subjects, random_state=args.seed)
-    else:
-        cohort = load_cohort(args.dataset)
+    cohort = load_dataset(args)
     start = time.perf_counter()
     model = ShapePriorSegmenter(
         args.landmarks,

@@ -11,6 +11,7 @@ mean shape as template.
 
 from __future__ import annotations
 
+import inspect
 import time
 from dataclasses import dataclass, field
 
@@ -24,6 +25,9 @@ from medseg.reconstruction import warp_mask
 from medseg.shape import ActiveShapeModel
 
 __all__ = ["ASMBaseline", "ASMResult"]
+
+# The baseline's parameters of the same names configure the model.
+_ASM_PARAMETERS = tuple(inspect.signature(ActiveShapeModel).parameters)
 
 
 @dataclass
@@ -125,13 +129,7 @@ class ASMBaseline:
         if len({s.shape for s in shapes}) > 1:
             raise CohortError("training cases carry different numbers of landmarks")
         self.model_ = ActiveShapeModel(
-            variance=self.variance,
-            limit=self.limit,
-            profile_half=self.profile_half,
-            search_half=self.search_half,
-            step_mm=self.step_mm,
-            n_levels=self.n_levels,
-            max_iter=self.max_iter,
+            **{name: getattr(self, name) for name in _ASM_PARAMETERS}
         ).fit(np.asarray(shapes) if shapes else np.empty((0, 0, 3)), images, progress=progress)
         ref = self.model_.closest_to_mean_
         self.template_mask_ = select_labels(cohort[ref].load_label(), self.labels)

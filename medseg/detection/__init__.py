@@ -5,11 +5,11 @@ positions ``X_i`` of each landmark (Wang et al., MICCAI 2010).
 """
 
 from medseg.detection._candidates import CandidateSet, non_maximum_suppression, subvoxel_peak
-from medseg.detection._detector import LandmarkDetector
+from medseg.detection._detector import LandmarkDetector, load_detector
 from medseg.detection._directions import gradient_directions
 from medseg.detection._features import FeatureSettings, compute_features, feature_names
 from medseg.detection._memory import detection_bytes, feature_map_bytes
-from medseg.detection._persistence import load_detector, save_detector
+from medseg.detection._persistence import save_detector
 from medseg.detection._sampling import LandmarkSamples, sample_landmark_voxels
 
 __all__ = [

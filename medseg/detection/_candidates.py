@@ -1,17 +1,35 @@
-"""Candidate positions from probability maps: non-maximum suppression in mm, sub-voxel peaks."""
+"""Candidate positions of the landmarks: the ``CandidateSet`` and how a detector finds it.
+
+A fitted detector scores the voxels of a stride grid, non-maximum suppression in mm keeps the
+best spatially distinct ones of each landmark, and refinement moves each to the best voxel of
+its full-resolution neighbourhood and to a sub-voxel peak. The scoring itself (features,
+cascade, forests) is :mod:`medseg.detection._prediction`; this module turns scores into
+candidates.
+"""
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
+import SimpleITK as sitk
 from numpy.typing import ArrayLike
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from medseg.errors import MedsegError
+from medseg.detection._prediction import (
+    check_mask,
+    forest_features,
+    predict_cascade,
+    predict_rows,
+    scored_region,
+    stride_grid,
+)
+from medseg.errors import ParameterError
+from medseg.io import voxel_to_physical
 
-__all__ = ["CandidateSet", "non_maximum_suppression", "subvoxel_peak"]
+__all__ = ["CandidateSet", "detect_candidates", "non_maximum_suppression", "subvoxel_peak"]
 
 
 @dataclass
@@ -61,7 +79,7 @@ class CandidateSet:
         """
         eps = self.floor if eps is None else float(eps)
         if not 0 < eps < 1:
-            raise MedsegError(f"`eps` must be in (0, 1), got {eps}")
+            raise ParameterError(f"`eps` must be in (0, 1), got {eps}")
         return -np.log(np.clip(self.probabilities, eps, 1.0))
 
     def distances(self, landmarks: ArrayLike) -> np.ndarray:
@@ -78,7 +96,7 @@ class CandidateSet:
         """
         ref = np.asarray(landmarks, dtype=float)
         if ref.shape != (self.n_landmarks, 3):
-            raise MedsegError(
+            raise ParameterError(
                 f"`landmarks` has shape {ref.shape}; expected ({self.n_landmarks}, 3) in mm"
             )
         return np.linalg.norm(self.positions - ref[:, None, :], axis=-1)
@@ -215,3 +233,137 @@ def subvoxel_peak(values: np.ndarray, centre: tuple[int, int, int]) -> np.ndarra
         if np.isfinite(denom) and denom < 0:
             offset[ax] = np.clip(0.5 * (fm - fp) / denom, -0.5, 0.5)
     return offset
+
+
+# ------------------------------------------------------------------- a detector's candidates
+def detect_candidates(
+    detector,
+    image: sitk.Image,
+    *,
+    n_candidates: int,
+    min_distance_mm: float | None,
+    mask,
+    stride: int,
+    refine: bool,
+    floor: float,
+    precomputed: np.ndarray | None,
+) -> CandidateSet:
+    """:meth:`LandmarkDetector.candidates` of a fitted detector (the arguments are its own)."""
+    n_candidates = int(n_candidates)
+    if n_candidates < 1:
+        raise ParameterError(f"`n_candidates` must be >= 1, got {n_candidates}")
+    if not 0 < floor < 1:
+        raise ParameterError(f"`floor` must be in (0, 1), got {floor}")
+    timings = {}
+    t0 = time.perf_counter()
+    feats = forest_features(detector, image, precomputed)
+    timings["features_s"] = time.perf_counter() - t0
+    shape = feats.shape[:3]
+    flat = feats.reshape(-1, feats.shape[-1])
+    mask_arr = check_mask(image, mask, shape)
+    spacing = np.asarray(image.GetSpacing(), dtype=float)[::-1]
+    if min_distance_mm is None:
+        min_distance_mm = max(float(detector.positive_radius_mm), 2.0 * float(spacing.max()))
+    stride = int(stride)
+    region = scored_region(shape, mask_arr, stride)
+    coarse_on_grid = region[::stride, ::stride, ::stride]
+    on_grid = coarse_on_grid.sum() == region.sum()
+    t0 = time.perf_counter()
+    if on_grid:
+        grid_shape, grid_zyx, grid_rows = stride_grid(shape, stride)
+        scored = coarse_on_grid.ravel()
+        footprint = float(min_distance_mm) / (spacing * stride)
+    else:  # thin mask scored voxel by voxel
+        grid_shape = None
+        grid_zyx = np.argwhere(region)
+        grid_rows = np.ravel_multi_index(grid_zyx.T, shape)
+        scored = np.ones(len(grid_rows), dtype=bool)
+        footprint = None
+    proba = np.full((len(grid_rows), detector.n_landmarks_), -np.inf, dtype=np.float64)
+    proba[scored] = predict_cascade(detector, flat[grid_rows[scored]], rejected=-np.inf)
+    timings["predict_s"] = time.perf_counter() - t0
+    points_mm = voxel_to_physical(image, grid_zyx)
+
+    t0 = time.perf_counter()
+    n_lm = detector.n_landmarks_
+    n_keep = min(n_candidates, int(scored.sum()))
+    vox = np.zeros((n_lm, n_candidates, 3))
+    prob = np.full((n_lm, n_candidates), floor)
+    for i in range(n_lm):
+        keep = non_maximum_suppression(
+            proba[:, i],
+            points_mm,
+            n=n_keep,
+            min_distance_mm=float(min_distance_mm),
+            grid_shape=grid_shape,
+            footprint_vox=footprint,
+        )
+        vox[i, : len(keep)] = grid_zyx[keep]
+        prob[i, : len(keep)] = proba[keep, i]
+        if len(keep) < n_candidates:  # fewer scored voxels than candidates: repeat the last
+            vox[i, len(keep) :] = vox[i, len(keep) - 1]
+            prob[i, len(keep) :] = floor
+    timings["nms_s"] = time.perf_counter() - t0
+    if refine:
+        t0 = time.perf_counter()
+        vox, prob = _refine(detector, flat, shape, mask_arr, vox, prob, max(stride, 1))
+        timings["refine_s"] = time.perf_counter() - t0
+    positions = voxel_to_physical(image, vox.reshape(-1, 3)).reshape(vox.shape)
+    return CandidateSet(
+        positions=positions,
+        probabilities=np.clip(prob, floor, 1.0),
+        voxels=vox,
+        floor=float(floor),
+        meta={
+            "stride": stride,
+            "min_distance_mm": float(min_distance_mm),
+            "refine": bool(refine),
+            "mode": detector.mode,
+            "timings": timings,
+        },
+    )
+
+
+def _refine(detector, flat, shape, mask, vox, prob, half):
+    """Best voxel and sub-voxel peak of each candidate's full-resolution neighbourhood."""
+    n_lm, n_c, _ = vox.shape
+    offsets = np.stack(np.meshgrid(*[np.arange(-half, half + 1)] * 3, indexing="ij"), -1).reshape(
+        -1, 3
+    )
+    side = 2 * half + 1
+    centres = np.rint(vox).astype(int)
+    cubes = centres[:, :, None, :] + offsets[None, None]  # (N, L, K, 3)
+    valid = np.all((cubes >= 0) & (cubes < np.asarray(shape)), axis=-1)
+    clipped = np.clip(cubes, 0, np.asarray(shape) - 1)
+    if mask is not None:
+        valid &= mask[tuple(np.moveaxis(clipped, -1, 0))]
+    rows = np.ravel_multi_index(tuple(np.moveaxis(clipped, -1, 0)), shape)
+    values = np.full(valid.shape, np.nan)
+    if detector.mode == "per_landmark":
+        for i in range(n_lm):
+            sel = valid[i]
+            values[i][sel] = predict_rows(detector, flat[rows[i][sel]], [i])[:, 0]
+    else:  # one pass of the multi-class forest over every neighbourhood
+        unique, inverse = np.unique(rows[valid], return_inverse=True)
+        proba = predict_rows(detector, flat[unique])
+        lm_index = np.broadcast_to(np.arange(n_lm)[:, None, None], valid.shape)[valid]
+        values[valid] = proba[inverse, lm_index]
+    new_vox, new_prob = vox.copy(), prob.copy()
+    for i in range(n_lm):
+        for c in range(n_c):
+            v = values[i, c]
+            if np.all(np.isnan(v)):
+                continue
+            best = int(np.nanargmax(v))
+            centre = v.size // 2
+            if np.isfinite(v[centre]) and v[best] <= v[centre]:
+                best = centre  # ties (flat maps) keep the candidate where it is
+            cube = v.reshape(side, side, side)
+            local = np.unravel_index(best, cube.shape)
+            offset = subvoxel_peak(cube, local)
+            new_vox[i, c] = cubes[i, c, best] + offset
+            new_prob[i, c] = max(v[best], 0.0)
+    order = np.argsort(-new_prob, axis=1, kind="stable")
+    new_vox = np.take_along_axis(new_vox, order[..., None], axis=1)
+    new_prob = np.take_along_axis(new_prob, order, axis=1)
+    return new_vox, new_prob

@@ -38,6 +38,7 @@ from scipy.spatial.distance import pdist
 from sklearn.cluster import KMeans
 from sklearn.utils import check_random_state
 
+from medseg.detection._features import shell_kernel
 from medseg.geometry import procrustes_mean
 
 __all__ = ["landmark_groups", "context_radii", "context_features", "context_names"]
@@ -91,12 +92,7 @@ def context_radii(shapes: np.ndarray, n_radii: int = 6) -> tuple[float, ...]:
 def _shell(radius_mm: float, spacing_zyx: np.ndarray) -> np.ndarray:
     """Normalised spherical shell of the given radius, half-width ``_SHELL_WIDTH`` * radius."""
     width = max(float(spacing_zyx.max()), _SHELL_WIDTH * radius_mm)
-    half = np.ceil((radius_mm + width) / spacing_zyx).astype(int)
-    axes = [np.arange(-h, h + 1) * s for h, s in zip(half, spacing_zyx, strict=True)]
-    zz, yy, xx = np.meshgrid(*axes, indexing="ij")
-    dist = np.sqrt(zz**2 + yy**2 + xx**2)
-    kernel = np.clip(1.0 - np.abs(dist - radius_mm) / width, 0.0, None)
-    return (kernel / kernel.sum()).astype(np.float32)
+    return shell_kernel(radius_mm, spacing_zyx, width_mm=width)
 
 
 def context_features(

@@ -13,7 +13,7 @@ import SimpleITK as sitk
 from numpy.typing import ArrayLike
 from scipy import ndimage
 
-from medseg.errors import MedsegError
+from medseg.errors import MedsegError, ParameterError
 from medseg.io import physical_to_voxel
 
 __all__ = ["gradient_directions"]
@@ -42,7 +42,7 @@ def gradient_directions(
     if image.GetDimension() != 3:
         raise MedsegError(f"gradient_directions needs a 3D image, got {image.GetDimension()}D")
     if not float(sigma_mm) > 0:
-        raise MedsegError(f"`sigma_mm` must be > 0, got {sigma_mm}")
+        raise ParameterError(f"`sigma_mm` must be > 0, got {sigma_mm}")
     pts = np.asarray(points, dtype=float).reshape(-1, 3)
     spacing_zyx = np.asarray(image.GetSpacing(), dtype=float)[::-1]
     # scipy rather than SimpleITK's recursive Gaussian, which refuses axes under 4 voxels

@@ -5,6 +5,10 @@ detector trained on one pose, spacing or scanner scaling applies to another: Gau
 intensity, scale-normalised gradient magnitude, sorted Hessian eigenvalues, Laplacian of
 Gaussian, local standard deviation, and mean intensity on spherical shells of several radii.
 No raw coordinate is ever a feature.
+
+One module, though longer than the others of the package: the settings, the channel names and
+the filters that fill the channels change together (a new kind needs all three), and the
+intensity normalisation is the first step of the same computation, not a second idea.
 """
 
 from __future__ import annotations
@@ -17,9 +21,16 @@ import SimpleITK as sitk
 from scipy import ndimage
 from scipy.signal import fftconvolve
 
-from medseg.errors import ImageGeometryError, MedsegError
+from medseg.errors import ImageGeometryError, MedsegError, ParameterError
 
-__all__ = ["FeatureSettings", "compute_features", "feature_names", "image_array"]
+__all__ = [
+    "FeatureSettings",
+    "compute_features",
+    "feature_names",
+    "image_array",
+    "require_image",
+    "shell_kernel",
+]
 
 FEATURE_KINDS = (
     "intensity",
@@ -91,25 +102,25 @@ class FeatureSettings:
         object.__setattr__(self, "kinds", tuple(str(k) for k in self.kinds))
         unknown = [k for k in self.kinds if k not in FEATURE_KINDS]
         if unknown:
-            raise MedsegError(
+            raise ParameterError(
                 f"FeatureSettings: unknown feature kind(s) {unknown}; choose among {FEATURE_KINDS}"
             )
         if not self.kinds:
-            raise MedsegError("FeatureSettings: `kinds` is empty; ask for at least one feature")
+            raise ParameterError("FeatureSettings: `kinds` is empty; ask for at least one feature")
         if any(s <= 0 for s in self.scales_mm) or any(r <= 0 for r in self.shell_radii_mm):
-            raise MedsegError("FeatureSettings: `scales_mm` and `shell_radii_mm` must be > 0 mm")
+            raise ParameterError("FeatureSettings: `scales_mm` and `shell_radii_mm` must be > 0 mm")
         if self.normalisation not in _NORMALISATIONS:
-            raise MedsegError(
+            raise ParameterError(
                 f"FeatureSettings: normalisation={self.normalisation!r}; "
                 f"choose among {_NORMALISATIONS}"
             )
         if self.foreground not in _FOREGROUNDS:
-            raise MedsegError(
+            raise ParameterError(
                 f"FeatureSettings: foreground={self.foreground!r}; choose among {_FOREGROUNDS}"
             )
         lo, hi = self.percentiles if len(self.percentiles) == 2 else (1.0, 0.0)
         if not 0.0 <= lo < hi <= 100.0:
-            raise MedsegError(
+            raise ParameterError(
                 f"FeatureSettings: percentiles={self.percentiles}; need two values "
                 "0 <= low < high <= 100"
             )
@@ -166,13 +177,18 @@ def feature_names(settings: FeatureSettings) -> list[str]:
     return names
 
 
-def image_array(image: sitk.Image, *, name: str = "image") -> np.ndarray:
-    """Validated ``(Z, Y, X)`` float32 voxel array of a 3D scalar image with finite values."""
+def require_image(image, *, name: str = "image") -> None:
+    """Raise MedsegError unless ``image`` is a SimpleITK image (any dimension)."""
     if not isinstance(image, sitk.Image):
         raise MedsegError(
             f"`{name}` must be a SimpleITK image, got {type(image).__name__}; read files with "
             "medseg.io.read_image"
         )
+
+
+def image_array(image: sitk.Image, *, name: str = "image") -> np.ndarray:
+    """Validated ``(Z, Y, X)`` float32 voxel array of a 3D scalar image with finite values."""
+    require_image(image, name=name)
     if image.GetDimension() != 3:
         raise ImageGeometryError(
             f"`{name}` is {image.GetDimension()}D; landmark detection needs a 3D image"
@@ -264,9 +280,16 @@ def _sym3_eigvals(hzz, hzy, hzx, hyy, hyx, hxx, out: np.ndarray) -> None:
     out[..., 2] = e_max
 
 
-def _shell_kernel(radius_mm: float, spacing_zyx: np.ndarray) -> np.ndarray:
-    """Normalised spherical-shell kernel of the given radius, thickness one voxel (mm grid)."""
-    width = float(spacing_zyx.max())
+def shell_kernel(
+    radius_mm: float, spacing_zyx: np.ndarray, *, width_mm: float | None = None
+) -> np.ndarray:
+    """Normalised spherical-shell kernel on the voxel grid of ``spacing_zyx`` (mm).
+
+    A tent profile across the sphere of radius ``radius_mm``: weight 1 on the sphere, falling
+    linearly to 0 at ``width_mm`` from it (default the largest spacing: about one voxel thick).
+    Also the context features' shells (:mod:`medseg.detection._context`), which are wider.
+    """
+    width = float(spacing_zyx.max()) if width_mm is None else float(width_mm)
     half = np.ceil((radius_mm + width) / spacing_zyx).astype(int)
     axes = [np.arange(-h, h + 1) * s for h, s in zip(half, spacing_zyx, strict=True)]
     zz, yy, xx = np.meshgrid(*axes, indexing="ij")
@@ -364,7 +387,7 @@ def compute_features(image: sitk.Image, settings: FeatureSettings | None = None)
         del smooth
     if "shell" in kinds:
         for radius in settings.shell_radii_mm:
-            kernel = _shell_kernel(radius, spacing)
+            kernel = shell_kernel(radius, spacing)
             pad = [(k // 2, k // 2) for k in kernel.shape]
             padded = np.pad(arr, pad, mode="edge")
             out[..., col] = fftconvolve(padded, kernel, mode="valid")

@@ -9,6 +9,10 @@ A saved detector is a folder::
 
 The folder is written next to its destination and renamed into place, so a failed save never
 leaves a half-written detector.
+
+This module does not import :class:`~medseg.detection.LandmarkDetector`: the class imports
+it, and :func:`read_detector` is given the class to build. :func:`load_detector`, the public
+reader, is defined next to the class.
 """
 
 from __future__ import annotations
@@ -21,11 +25,12 @@ import skops.io as sio
 from sklearn.ensemble import ExtraTreesClassifier, RandomForestClassifier
 
 from medseg.detection._features import FeatureSettings
+from medseg.detection._prediction import forest_feature_names
 from medseg.errors import InputFileError, MedsegError, ModelFileError, NotFittedError
 from medseg.io import atomic_folder
 from medseg.io._archive import check_archive
 
-__all__ = ["save_detector", "load_detector", "FORMAT_NAME", "FORMAT_VERSION"]
+__all__ = ["save_detector", "read_detector", "FORMAT_NAME", "FORMAT_VERSION"]
 
 FORMAT_NAME = "medseg.detection.LandmarkDetector"
 FORMAT_VERSION = 1
@@ -61,7 +66,7 @@ def save_detector(detector, path) -> Path:
             f"save: {path} exists and is not a saved detector; choose another path so "
             "nothing is overwritten"
         )
-    params = detector.get_params()
+    params = detector.get_params(deep=False)
     params["features"] = params["features"].to_dict()
     params["random_state"] = (
         params["random_state"] if isinstance(params["random_state"], int | None) else None
@@ -92,8 +97,16 @@ def save_detector(detector, path) -> Path:
     return path
 
 
-def load_detector(path):
-    """Read a detector written by :func:`save_detector`.
+def read_detector(cls, path):
+    """Read a detector written by :func:`save_detector`, as an instance of ``cls``.
+
+    Parameters
+    ----------
+    cls : type
+        :class:`~medseg.detection.LandmarkDetector` (or a subclass): built from the saved
+        constructor parameters, then given the fitted attributes.
+    path : str or Path
+        The folder.
 
     Raises
     ------
@@ -102,8 +115,6 @@ def load_detector(path):
     ModelFileError
         If the files are corrupt, of another format or version, or hold unexpected types.
     """
-    from medseg.detection._detector import LandmarkDetector
-
     path = Path(path)
     if not (path / _META).is_file() or not (path / _FORESTS).is_file():
         raise InputFileError(
@@ -123,7 +134,7 @@ def load_detector(path):
         params.setdefault("auto_context", False)  # saved before auto-context existed
         params["features"] = FeatureSettings.from_dict(params["features"])
         fitted = meta["fitted"]
-        detector = LandmarkDetector(**params)
+        detector = cls(**params)
     except ModelFileError:
         raise
     except (ValueError, KeyError, TypeError, AttributeError, MedsegError) as exc:
@@ -164,7 +175,7 @@ def load_detector(path):
                 f"load: {path} has no {_STAGE1}/ folder, which an auto-context detector needs; "
                 "the folder was modified after saving"
             )
-        detector.stage1_ = load_detector(path / _STAGE1)
+        detector.stage1_ = read_detector(cls, path / _STAGE1)
         try:
             groups = np.asarray(fitted["context_groups"], dtype=int)
             radii = tuple(float(r) for r in fitted["context_radii_mm"])
@@ -178,7 +189,7 @@ def load_detector(path):
     expected = len(detector.forests_) == (
         detector.n_landmarks_ if detector.mode == "per_landmark" else 1
     )
-    if not expected or detector.feature_names_ != detector._feature_names():
+    if not expected or detector.feature_names_ != forest_feature_names(detector):
         raise ModelFileError(
             f"load: {path} is inconsistent (forest count or feature names do not match the "
             "settings); the folder was modified after saving"

@@ -6,6 +6,7 @@
   Label maps: :func:`read_label`, :func:`select_labels`, :func:`resample_like`.
 * Landmarks: :func:`read_landmarks` / :func:`write_landmarks` (CSV, Slicer ``.fcsv`` and
   ``.mrk.json``).
+* Fitted model parts: :func:`save_arrays` / :func:`load_arrays` (NPZ + JSON header).
 * Every write goes through :func:`atomic_write`.
 
 Conventions (see the design notes):
@@ -34,6 +35,7 @@ Examples
 
 from __future__ import annotations
 
+from medseg.io._arrays import check_format, load_arrays, save_arrays
 from medseg.io._atomic import atomic_folder, atomic_write, check_not_protected
 from medseg.io._checks import check_image, check_same_geometry
 from medseg.io._coordinates import image_geometry, physical_to_voxel, voxel_to_physical
@@ -62,6 +64,9 @@ __all__ = [
     "write_dicom_series",
     "read_landmarks",
     "write_landmarks",
+    "save_arrays",
+    "load_arrays",
+    "check_format",
     "atomic_folder",
     "atomic_write",
     "check_not_protected",

@@ -1,7 +1,16 @@
 """Dense non-rigid surface matching with third-order graph matching (Zeng et al., CVPR 2010).
 
 Mesh primitives (areas, normals, the Laplacian, geodesics, sampling) are in
-:mod:`medseg.geometry`.
+:mod:`medseg.geometry`. The modules, in the order the matcher uses them:
+
+* ``_mesh_io``, ``_mesh_check``: mesh files in and out; the checks a mesh must pass;
+* ``_descriptors``, ``_conformal``, ``_surface``: curvature, eigenpairs, HKS / WKS and the
+  mirror test; conformal flattening and Möbius transforms; what is computed once per surface;
+* ``_potentials``, ``_solver``: the terms of the third-order energy; its minimisation;
+* ``_sparse``, ``_voting``, ``_dense``, ``_spectral``: the sparse stage, the dense candidates
+  from Möbius votes, the dense stage, the ZoomOut refinement;
+* ``_matcher``: :func:`match_surfaces`, the choice among sparse solves;
+* ``_scoring``: geodesic error of a map against ground truth (benchmarks, tests).
 """
 
 from medseg.matching._conformal import (
@@ -15,21 +24,16 @@ from medseg.matching._conformal import (
     mobius_to_canonical,
     to_riemann_sphere,
 )
-from medseg.matching._geometry import (
+from medseg.matching._descriptors import (
     gaussian_curvature,
     heat_kernel_signature,
     laplacian_eigenpairs,
     mirrored_fraction,
     wave_kernel_signature,
 )
-from medseg.matching._matcher import (
-    PreparedSurface,
-    SurfaceMatch,
-    match_surfaces,
-    prepare_surface,
-    spectral_refine,
-)
-from medseg.matching._mesh import MESH_SUFFIXES, check_mesh, read_mesh, write_mesh
+from medseg.matching._matcher import SurfaceMatch, match_surfaces
+from medseg.matching._mesh_check import check_mesh
+from medseg.matching._mesh_io import MESH_SUFFIXES, read_mesh, write_mesh
 from medseg.matching._potentials import (
     gaussian_map_potentials,
     geodesic_distortion_potentials,
@@ -40,6 +44,8 @@ from medseg.matching._potentials import (
     triplet_potentials,
 )
 from medseg.matching._solver import MatchingProblem, SolveResult, matching_energy, solve_matching
+from medseg.matching._spectral import spectral_refine
+from medseg.matching._surface import PreparedSurface, prepare_surface
 
 __all__ = [
     "MatchingProblem",

@@ -8,7 +8,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike
 
-from medseg.errors import ProblemDefinitionError, ResourceLimitError
+from medseg import memory
+from medseg.errors import ProblemDefinitionError
 
 __all__ = ["MRF", "FactorGroup", "DEFAULT_MAX_BYTES"]
 
@@ -43,23 +44,17 @@ class FactorGroup:
         return int(self.scopes.shape[0])
 
 
-def _format_bytes(n: float) -> str:
-    for unit in ("bytes", "KiB", "MiB", "GiB", "TiB"):
-        if n < 1024 or unit == "TiB":
-            return f"{n:.0f} {unit}" if unit == "bytes" else f"{n:.1f} {unit}"
-        n /= 1024
-    return f"{n:.1f} TiB"  # pragma: no cover
-
-
 def check_memory(estimate: float, max_bytes: float | None, what: str) -> None:
-    """Raise :class:`ResourceLimitError` when ``estimate`` exceeds ``max_bytes``."""
+    """Raise :class:`ResourceLimitError` when ``estimate`` exceeds ``max_bytes``
+    (default :data:`DEFAULT_MAX_BYTES`)."""
     limit = DEFAULT_MAX_BYTES if max_bytes is None else max_bytes
-    if estimate > limit:
-        raise ResourceLimitError(
-            f"{what} needs an estimated {_format_bytes(estimate)} of memory, above the limit "
-            f"max_bytes={int(limit)} ({_format_bytes(limit)}); reduce the number of labels or "
-            "factors, or pass a larger max_bytes if the machine has the memory"
-        )
+    memory.check_memory(
+        estimate,
+        what=what,
+        hint="fewer labels or factors",
+        limit=limit,
+        raise_with=f"max_bytes=..., now {int(limit)}",
+    )
 
 
 def _check_costs(values: np.ndarray, name: str) -> None:

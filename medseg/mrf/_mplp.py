@@ -12,14 +12,8 @@ from medseg.mrf._kernels import (
     working_tables,
 )
 from medseg.mrf._model import MRF
-from medseg.mrf._primal import (
-    Clock,
-    PrimalTracker,
-    finish_min_marginals,
-    gap_closed,
-    rounding_slack,
-)
-from medseg.mrf._result import SolveResult, make_result
+from medseg.mrf._primal import Clock, PrimalTracker, certified_result, gap_closed
+from medseg.mrf._result import SolveResult
 
 __all__ = ["solve_mplp", "colour_factors"]
 
@@ -200,17 +194,18 @@ def solve_mplp(
             break
 
     lower, mm = _dual_certificate(theta, scopes, tables, lam, n, lab)
-    if status == 0 and not gap_closed(primal.energy, lower, tol, atol + rounding_slack(big)):
-        status = 2
-    return make_result(
-        x=primal.x,
-        energy=primal.energy,
-        lower_bound=lower,
-        n_iter=it,
+    return certified_result(
+        mrf,
+        primal,
+        lower,
+        mm,
+        big=big,
         status=status,
-        time=clock.elapsed,
-        min_marginals=finish_min_marginals(mm, mrf, big),
-        history={"energy": np.asarray(hist_e), "lower_bound": np.asarray(hist_lb)},
+        n_iter=it,
+        clock=clock,
+        tol=tol,
+        atol=atol,
+        history=(hist_e, hist_lb),
         method="mplp",
         n_colours=n_colours,
     )

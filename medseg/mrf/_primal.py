@@ -8,8 +8,16 @@ import numpy as np
 
 from medseg.mrf._icm import Incidence, icm_improve
 from medseg.mrf._model import MRF
+from medseg.mrf._result import SolveResult, make_result
 
-__all__ = ["PrimalTracker", "gap_closed", "Clock", "rounding_slack", "finish_min_marginals"]
+__all__ = [
+    "PrimalTracker",
+    "gap_closed",
+    "Clock",
+    "rounding_slack",
+    "finish_min_marginals",
+    "certified_result",
+]
 
 
 def gap_closed(energy: float, lower_bound: float, tol: float, atol: float) -> bool:
@@ -71,3 +79,41 @@ def finish_min_marginals(mm: np.ndarray, mrf: MRF, big: float) -> np.ndarray:
     mm = np.asarray(mm, dtype=np.float64)
     valid = np.arange(mrf.max_labels)[None, :] < mrf.n_labels[:, None]
     return np.where(valid & (mm < big), mm, np.inf)
+
+
+def certified_result(
+    mrf: MRF,
+    primal: PrimalTracker,
+    lower: float,
+    min_marginals: np.ndarray,
+    *,
+    big: float,
+    status: int,
+    n_iter: int,
+    clock: Clock,
+    tol: float,
+    atol: float,
+    history: tuple[list, list],
+    method: str,
+    **extra,
+) -> SolveResult:
+    """The result of a dual solver: its best labelling and the float64 certificate.
+
+    A gap the float32 loop saw closed (``status`` 0) but the certificate ``lower`` does not
+    confirm becomes status 2; ``history`` is the (energy, lower bound) per iteration.
+    """
+    if status == 0 and not gap_closed(primal.energy, lower, tol, atol + rounding_slack(big)):
+        status = 2
+    energies, bounds = history
+    return make_result(
+        x=primal.x,
+        energy=primal.energy,
+        lower_bound=lower,
+        n_iter=n_iter,
+        status=status,
+        time=clock.elapsed,
+        min_marginals=finish_min_marginals(min_marginals, mrf, big),
+        history={"energy": np.asarray(energies), "lower_bound": np.asarray(bounds)},
+        method=method,
+        **extra,
+    )

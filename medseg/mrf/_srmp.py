@@ -7,14 +7,8 @@ import numpy as np
 from medseg.mrf._kernels import chunks, forbidden_cost, min_to_axis
 from medseg.mrf._model import MRF
 from medseg.mrf._mplp import _dual_certificate, _incidence, _sequential_decode
-from medseg.mrf._primal import (
-    Clock,
-    PrimalTracker,
-    finish_min_marginals,
-    gap_closed,
-    rounding_slack,
-)
-from medseg.mrf._result import SolveResult, make_result
+from medseg.mrf._primal import Clock, PrimalTracker, certified_result, gap_closed
+from medseg.mrf._result import SolveResult
 
 __all__ = ["solve_srmp"]
 
@@ -213,17 +207,18 @@ def solve_srmp(
             break
 
     lower, mm = _dual_certificate(theta, scopes, tables, msg, n, lab)
-    if status == 0 and not gap_closed(primal.energy, lower, tol, atol + rounding_slack(big)):
-        status = 2
-    return make_result(
-        x=primal.x,
-        energy=primal.energy,
-        lower_bound=lower,
-        n_iter=it,
+    return certified_result(
+        mrf,
+        primal,
+        lower,
+        mm,
+        big=big,
         status=status,
-        time=clock.elapsed,
-        min_marginals=finish_min_marginals(mm, mrf, big),
-        history={"energy": np.asarray(hist_e), "lower_bound": np.asarray(hist_lb)},
+        n_iter=it,
+        clock=clock,
+        tol=tol,
+        atol=atol,
+        history=(hist_e, hist_lb),
         method="srmp",
         n_subgradient_steps=n_sub,
     )

@@ -7,14 +7,8 @@ import numpy as np
 from medseg.mrf._forest import build_forest, copy_min_marginals, decode, upward
 from medseg.mrf._kernels import forbidden_cost, working_tables
 from medseg.mrf._model import MRF
-from medseg.mrf._primal import (
-    Clock,
-    PrimalTracker,
-    finish_min_marginals,
-    gap_closed,
-    rounding_slack,
-)
-from medseg.mrf._result import SolveResult, make_result
+from medseg.mrf._primal import Clock, PrimalTracker, certified_result, gap_closed
+from medseg.mrf._result import SolveResult
 from medseg.mrf._trees import factor_tree_cover
 
 __all__ = ["solve_subgradient", "tree_cover_of"]
@@ -126,17 +120,18 @@ def solve_subgradient(
     np.add.at(mm, cv, mmc - mmc.min(axis=1, keepdims=True))
     mm[isolated] = theta[isolated] - theta[isolated].min(axis=1, keepdims=True)
     mm += lower
-    if status == 0 and not gap_closed(primal.energy, lower, tol, atol + rounding_slack(big)):
-        status = 2  # float32 rounding in the loop claimed a closed gap the certificate denies
-    return make_result(
-        x=primal.x,
-        energy=primal.energy,
-        lower_bound=lower,
-        n_iter=it,
+    return certified_result(
+        mrf,
+        primal,
+        lower,
+        mm,
+        big=big,
         status=status,
-        time=clock.elapsed,
-        min_marginals=finish_min_marginals(mm, mrf, big),
-        history={"energy": np.asarray(hist_e), "lower_bound": np.asarray(hist_lb)},
+        n_iter=it,
+        clock=clock,
+        tol=tol,
+        atol=atol,
+        history=(hist_e, hist_lb),
         method="subgradient",
         n_trees=forest.n_trees,
     )

@@ -7,8 +7,8 @@ Layout of a model folder::
     template.npz      template mask (with its geometry), landmarks, surface, training landmarks
     detector/         written by LandmarkDetector.save (skops + JSON)
     prior.npz         written by TripletPrior.save (NPZ with a JSON header)
-    orientation.npz   the handedness term (OrientationPrior.state); since version 2
-    shape_model.npz   the active shape model refining the landmarks (ActiveShapeModel.state);
+    orientation.npz   written by OrientationPrior.save; since version 2
+    shape_model.npz   written by ActiveShapeModel.save (the model refining the landmarks);
                       since version 3
 
 The folder is built in a staging sibling and swapped into place (``atomic_folder``), so a
@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -37,7 +36,7 @@ import SimpleITK as sitk
 from medseg._version import __version__
 from medseg.detection import LandmarkDetector
 from medseg.errors import InputFileError, ModelFileError
-from medseg.io import atomic_folder
+from medseg.io import atomic_folder, check_format, load_arrays, save_arrays
 from medseg.io._archive import MAX_UNPACKED_BYTES, check_archive
 from medseg.shape import ActiveShapeModel, OrientationPrior, TripletPrior
 
@@ -72,6 +71,8 @@ MAX_MODEL_BYTES = 2 * 1024**3
 _ARCHIVES = (
     "template.npz", "prior.npz", "orientation.npz", "shape_model.npz", "detector/forests.skops",
 )  # fmt: skip
+_TEMPLATE_HEADER_CHECK = {"format": "medseg.segmenter.template", "version": 1}
+_TEMPLATE_HEADER = {"format": "medseg.segmenter.template", "format_version": 1}
 _TEMPLATE_ARRAYS = ("mask", "spacing", "origin", "direction", "landmarks", "vertices", "faces",
                     "training_landmarks")  # fmt: skip
 
@@ -97,26 +98,26 @@ def save_model(model, path: Path) -> Path:
     with atomic_folder(path) as tmp:
         mask = model.template_mask_
         vertices, faces = model.template_surface_
-        np.savez_compressed(
-            tmp / "template.npz",
-            mask=sitk.GetArrayFromImage(mask).astype(np.uint8),
-            spacing=np.asarray(mask.GetSpacing()),
-            origin=np.asarray(mask.GetOrigin()),
-            direction=np.asarray(mask.GetDirection()),
-            landmarks=np.asarray(model.template_landmarks_),
-            vertices=np.asarray(vertices, dtype=float),
-            faces=np.asarray(faces, dtype=np.int64),
-            training_landmarks=np.asarray(model.landmarks_),
-        )
+        template = {
+            "mask": sitk.GetArrayFromImage(mask).astype(np.uint8),
+            "spacing": np.asarray(mask.GetSpacing()),
+            "origin": np.asarray(mask.GetOrigin()),
+            "direction": np.asarray(mask.GetDirection()),
+            "landmarks": np.asarray(model.template_landmarks_),
+            "vertices": np.asarray(vertices, dtype=float),
+            "faces": np.asarray(faces, dtype=np.int64),
+            "training_landmarks": np.asarray(model.landmarks_),
+        }
+        save_arrays(tmp / "template.npz", template, header=_TEMPLATE_HEADER)
         model.detector_.save(tmp / "detector")
         model.prior_.save(tmp / "prior.npz")
         # a model loaded from an older version lacks its newer parts and keeps its version
         version = 1
         if model.orientation_ is not None:
-            np.savez_compressed(tmp / "orientation.npz", **model.orientation_.state())
+            model.orientation_.save(tmp / "orientation.npz")
             version = 2
             if model.shape_model_ is not None:
-                np.savez_compressed(tmp / "shape_model.npz", **model.shape_model_.state())
+                model.shape_model_.save(tmp / "shape_model.npz")
                 version = 3
         meta = {
             "format": FORMAT,
@@ -171,21 +172,22 @@ def load_model(cls, path: Path):
     if version < _SINCE["refine_levels"]:
         model.refine_levels = 0  # saved before the refinement existed: the MRF's landmarks
     template = path / "template.npz"
+    header, npz = load_arrays(template, what="model template")
+    check_format(header, **_TEMPLATE_HEADER_CHECK, source=str(template), missing_ok=True)
+    missing = [name for name in _TEMPLATE_ARRAYS if name not in npz]
+    if missing:
+        raise ModelFileError(f"{template} lacks the arrays {missing}")
     try:
-        with np.load(template, allow_pickle=False) as npz:
-            missing = [name for name in _TEMPLATE_ARRAYS if name not in npz.files]
-            if missing:
-                raise ModelFileError(f"{template} lacks the arrays {missing}")
-            mask = sitk.GetImageFromArray(npz["mask"])
-            mask.SetSpacing(npz["spacing"].tolist())
-            mask.SetOrigin(npz["origin"].tolist())
-            mask.SetDirection(npz["direction"].tolist())
-            model.template_mask_ = mask
-            model.template_landmarks_ = npz["landmarks"]
-            model.template_surface_ = (npz["vertices"], npz["faces"])
-            model.landmarks_ = npz["training_landmarks"]
-    except (ValueError, TypeError, RuntimeError, OSError, zipfile.BadZipFile) as exc:
+        mask = sitk.GetImageFromArray(npz["mask"])
+        mask.SetSpacing(npz["spacing"].tolist())
+        mask.SetOrigin(npz["origin"].tolist())
+        mask.SetDirection(npz["direction"].tolist())
+    except (ValueError, TypeError, RuntimeError) as exc:
         raise ModelFileError(f"{template} is corrupt ({exc})") from None
+    model.template_mask_ = mask
+    model.template_landmarks_ = npz["landmarks"]
+    model.template_surface_ = (npz["vertices"], npz["faces"])
+    model.landmarks_ = npz["training_landmarks"]
     model.detector_ = LandmarkDetector.load(path / "detector")
     model.prior_ = TripletPrior.load(path / "prior.npz")
     model.orientation_ = _load_part(path, "orientation.npz", version, OrientationPrior)
@@ -206,17 +208,13 @@ def load_model(cls, path: Path):
 
 
 def _load_part(path: Path, name: str, version: int, cls):
-    """``cls.from_state`` of the NPZ ``name``, or None when ``version`` predates it."""
+    """``cls.load`` of the part file ``name``, or None when ``version`` predates it."""
     if version < _SINCE[name]:
         return None
     file = path / name
     if not file.is_file():
         raise ModelFileError(f"{file} is missing; the model is incomplete")
-    try:
-        with np.load(file, allow_pickle=False) as npz:
-            return cls.from_state({key: npz[key] for key in npz.files})
-    except (ValueError, KeyError, TypeError, OSError, zipfile.BadZipFile) as exc:
-        raise ModelFileError(f"{file} is corrupt ({exc})") from None
+    return cls.load(file)
 
 
 def _check_archives(path: Path, version: int) -> None:

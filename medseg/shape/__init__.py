@@ -21,7 +21,6 @@ from medseg.shape._invariants import (
     triangle_angles,
 )
 from medseg.shape._orientation import OrientationPrior, triangle_orientation
-from medseg.shape._persistence import prior_from_state, prior_state
 from medseg.shape._point_distribution import (
     PointDistributionModel,
     landmark_mesh,
@@ -40,8 +39,6 @@ __all__ = [
     "OrientationPrior",
     "triangle_orientation",
     "MIN_TRAINING_SHAPES",
-    "prior_state",
-    "prior_from_state",
     "ActiveShapeModel",
     "ShapeSearch",
     "PointDistributionModel",

@@ -38,16 +38,18 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import SimpleITK as sitk
 from scipy.ndimage import gaussian_filter, map_coordinates
+from sklearn.base import BaseEstimator
 from sklearn.covariance import LedoitWolf
 from tqdm.auto import tqdm
 
-from medseg.errors import CohortError, NotFittedError, ParameterError
+from medseg.errors import CohortError, ModelFileError, NotFittedError, ParameterError
 from medseg.geometry import similarity_fit, vertex_normals
-from medseg.io import physical_to_voxel, voxel_to_physical
+from medseg.io import check_format, load_arrays, physical_to_voxel, save_arrays, voxel_to_physical
 from medseg.shape._point_distribution import landmark_mesh, point_distribution_model
 from medseg.shape._prior import MIN_TRAINING_SHAPES
 
@@ -130,7 +132,7 @@ _STATE_SCALARS = (
 )  # fmt: skip
 
 
-class ActiveShapeModel:
+class ActiveShapeModel(BaseEstimator):
     """Point distribution model, grey-level profile models and multi-resolution search.
 
     Parameters
@@ -369,11 +371,14 @@ class ActiveShapeModel:
 
     # -- persistence ------------------------------------------------------------------------
 
-    def state(self) -> dict[str, np.ndarray]:
-        """Arrays that :meth:`from_state` restores (for the model folder's NPZ)."""
+    FORMAT = "medseg.shape.ActiveShapeModel"
+    FORMAT_VERSION = 1
+
+    def save(self, path) -> Path:
+        """Write the fitted model to one ``.npz`` file (:func:`medseg.io.save_arrays`)."""
         self._check_fitted()
-        out = {name: np.array(getattr(self, name)) for name in _STATE_SCALARS}
-        out.update(
+        arrays = {name: np.array(getattr(self, name)) for name in _STATE_SCALARS}
+        arrays.update(
             mean_shape=self.mean_shape_,
             modes=self.modes_,
             eigenvalues=self.eigenvalues_,
@@ -383,26 +388,38 @@ class ActiveShapeModel:
             profile_means=self.profile_means_,
             profile_precisions=self.profile_precisions_,
         )
-        return out
+        header = {"format": self.FORMAT, "format_version": self.FORMAT_VERSION}
+        return save_arrays(path, arrays, header=header)
 
     @classmethod
-    def from_state(cls, state) -> ActiveShapeModel:
-        """Rebuild from :meth:`state`; ``ValueError`` if the arrays do not fit together."""
-        model = cls(
-            variance=float(state["variance"]),
-            limit=float(state["limit"]),
-            profile_half=int(state["profile_half"]),
-            search_half=int(state["search_half"]),
-            step_mm=float(state["step_mm"]),
-            n_levels=int(state["n_levels"]),
-            max_iter=int(state["max_iter"]),
-        )
-        mean = np.asarray(state["mean_shape"], dtype=float)
-        modes = np.asarray(state["modes"], dtype=float)
-        eig = np.asarray(state["eigenvalues"], dtype=float)
-        faces = np.asarray(state["faces"], dtype=np.int64)
-        means = np.asarray(state["profile_means"], dtype=float)
-        prec = np.asarray(state["profile_precisions"], dtype=float)
+    def load(cls, path) -> ActiveShapeModel:
+        """Read a model written by :meth:`save` (or a model folder's headerless file of
+        format version 3); ``ModelFileError`` if the file is not one."""
+        header, state = load_arrays(path, what="active shape model")
+        check_format(
+            header, format=cls.FORMAT, version=cls.FORMAT_VERSION, source=str(path),
+            missing_ok=True,
+        )  # fmt: skip
+        try:
+            model = cls(
+                variance=float(state["variance"]),
+                limit=float(state["limit"]),
+                profile_half=int(state["profile_half"]),
+                search_half=int(state["search_half"]),
+                step_mm=float(state["step_mm"]),
+                n_levels=int(state["n_levels"]),
+                max_iter=int(state["max_iter"]),
+            )
+            mean = np.asarray(state["mean_shape"], dtype=float)
+            modes = np.asarray(state["modes"], dtype=float)
+            eig = np.asarray(state["eigenvalues"], dtype=float)
+            faces = np.asarray(state["faces"], dtype=np.int64)
+            means = np.asarray(state["profile_means"], dtype=float)
+            prec = np.asarray(state["profile_precisions"], dtype=float)
+            mean_size = float(state["mean_size"])
+            closest = int(state["closest_to_mean"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ModelFileError(f"{path} is incomplete or corrupt ({exc})") from None
         n, width = len(mean), 2 * model.profile_half + 1
         if (
             mean.shape != (n, 3)
@@ -414,10 +431,10 @@ class ActiveShapeModel:
             or means.shape != (model.n_levels, n, width)
             or prec.shape != (model.n_levels, n, width, width)
         ):
-            raise ParameterError("active shape model arrays of inconsistent shapes")
+            raise ModelFileError(f"{path}: active shape model arrays of inconsistent shapes")
         model.mean_shape_, model.modes_, model.eigenvalues_ = mean, modes, eig
-        model.mean_size_ = float(state["mean_size"])
+        model.mean_size_ = mean_size
         model.faces_ = faces
-        model.closest_to_mean_ = int(state["closest_to_mean"])
+        model.closest_to_mean_ = closest
         model.profile_means_, model.profile_precisions_ = means, prec
         return model

@@ -15,10 +15,14 @@ Zeng et al. (CVPR 2010) for surface matching, carried over to landmarks in an im
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 from numpy.typing import ArrayLike
+from sklearn.base import BaseEstimator
 
-from medseg.errors import NotFittedError, ParameterError
+from medseg.errors import ModelFileError, NotFittedError, ParameterError
+from medseg.io import check_format, load_arrays, save_arrays
 
 __all__ = ["OrientationPrior", "triangle_orientation"]
 
@@ -50,7 +54,7 @@ def _cost(cos, reference, penalty):
     return 0.5 * (1.0 - reference * cos) * penalty
 
 
-class OrientationPrior:
+class OrientationPrior(BaseEstimator):
     """Per-clique handedness of the landmark triangles against the boundary directions.
 
     Parameters
@@ -185,29 +189,44 @@ class OrientationPrior:
         return out
 
     # ------------------------------------------------------------------ persistence
-    def state(self) -> dict[str, np.ndarray]:
-        """Arrays that :meth:`from_state` restores (for the model folder's NPZ)."""
+    FORMAT = "medseg.shape.OrientationPrior"
+    FORMAT_VERSION = 1
+
+    def save(self, path) -> Path:
+        """Write the fitted term to one ``.npz`` file (:func:`medseg.io.save_arrays`)."""
         self._check_fitted()
-        return {
+        arrays = {
             "cliques": self.cliques_,
             "reference": self.reference_,
             "agreement": self.agreement_,
             "n_training_shapes": np.array(self.n_training_shapes_),
             "pseudo_count": np.array(float(self.pseudo_count)),
         }
+        header = {"format": self.FORMAT, "format_version": self.FORMAT_VERSION}
+        return save_arrays(path, arrays, header=header)
 
     @classmethod
-    def from_state(cls, state) -> OrientationPrior:
-        """Rebuild from :meth:`state`; ``ValueError`` if the arrays do not fit together."""
-        prior = cls(pseudo_count=float(state["pseudo_count"]))
-        cliques = np.asarray(state["cliques"], dtype=np.int64)
-        reference = np.asarray(state["reference"], dtype=float)
-        agreement = np.asarray(state["agreement"], dtype=float)
+    def load(cls, path) -> OrientationPrior:
+        """Read a term written by :meth:`save` (or a model folder's headerless file of
+        format versions 2-3); ``ModelFileError`` if the file is not one."""
+        header, state = load_arrays(path, what="handedness term")
+        check_format(
+            header, format=cls.FORMAT, version=cls.FORMAT_VERSION, source=str(path),
+            missing_ok=True,
+        )  # fmt: skip
+        try:
+            prior = cls(pseudo_count=float(state["pseudo_count"]))
+            cliques = np.asarray(state["cliques"], dtype=np.int64)
+            reference = np.asarray(state["reference"], dtype=float)
+            agreement = np.asarray(state["agreement"], dtype=float)
+            n_training = int(state["n_training_shapes"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ModelFileError(f"{path} is incomplete or corrupt ({exc})") from None
         n_c = len(cliques)
         if cliques.shape != (n_c, 3) or reference.shape != (n_c,) or agreement.shape != (n_c,):
-            raise ParameterError("orientation arrays of inconsistent shapes")
+            raise ModelFileError(f"{path}: orientation arrays of inconsistent shapes")
         if not (np.all(np.abs(reference) == 1) and np.all((agreement > 0) & (agreement < 1))):
-            raise ParameterError("orientation arrays out of range")
+            raise ModelFileError(f"{path}: orientation arrays out of range")
         prior.cliques_, prior.reference_, prior.agreement_ = cliques, reference, agreement
-        prior.n_training_shapes_ = int(state["n_training_shapes"])
+        prior.n_training_shapes_ = n_training
         return prior

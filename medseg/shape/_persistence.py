@@ -1,19 +1,20 @@
-"""Save / load a fitted :class:`TripletPrior` as NPZ arrays with a JSON header (no pickle)."""
+"""A fitted :class:`TripletPrior` as a JSON header and named arrays, and back.
+
+The file itself is :func:`medseg.io.save_arrays`'s NPZ, as for every fitted part; this
+module only maps the prior's attributes to the header and the arrays, and checks everything
+it reads (shapes, finiteness, index ranges, valid mixtures), since a model file is
+untrusted input.
+"""
 
 from __future__ import annotations
 
-import json
-import os
-import tempfile
-import zipfile
-from pathlib import Path
-
 import numpy as np
 
-from medseg.errors import InputFileError, ModelFileError
+from medseg.errors import ModelFileError
+from medseg.io import check_format
 from medseg.shape._invariants import INVARIANTS
 
-__all__ = ["prior_state", "prior_from_state", "save_prior", "load_prior"]
+__all__ = ["prior_state", "prior_from_state"]
 
 _ARRAYS = ("mean_shape_", "cliques_", "weights_", "means_", "precisions_cholesky_",
            "n_components_")  # fmt: skip
@@ -43,16 +44,7 @@ def prior_state(prior) -> tuple[dict, dict[str, np.ndarray]]:
 
 def prior_from_state(cls, header: dict, arrays: dict, *, source: str = "the model"):
     """Rebuild a prior from :func:`prior_state` output; ``ModelFileError`` on any mismatch."""
-    if header.get("format") != cls.FORMAT:
-        raise ModelFileError(
-            f"{source} is not a medseg TripletPrior (format {header.get('format')!r})"
-        )
-    version = header.get("format_version")
-    if version != cls.FORMAT_VERSION:
-        raise ModelFileError(
-            f"{source} has TripletPrior format version {version!r}; this medseg reads version "
-            f"{cls.FORMAT_VERSION}. Refit the prior with this version of medseg."
-        )
+    check_format(header, format=cls.FORMAT, version=cls.FORMAT_VERSION, source=source)
     try:
         params = dict(header["params"])
         n = int(header["n_landmarks"])
@@ -107,42 +99,3 @@ def prior_from_state(cls, header: dict, arrays: dict, *, source: str = "the mode
         setattr(prior, name, get[name].astype(np.int64 if name in ("cliques_", "n_components_")
                                               else float))  # fmt: skip
     return prior
-
-
-def save_prior(prior, path) -> Path:
-    path = Path(path)
-    if path.suffix != ".npz":
-        path = path.with_name(path.name + ".npz")
-    if not path.parent.is_dir():
-        raise InputFileError(f"cannot save the prior to {path}: folder {path.parent} is missing")
-    header, arrays = prior_state(prior)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            np.savez(fh, header=np.array(json.dumps(header, sort_keys=True)), **arrays)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
-
-
-def load_prior(cls, path):
-    path = Path(path)
-    if not path.is_file():
-        raise InputFileError(f"prior file {path} does not exist")
-    try:
-        with np.load(path, allow_pickle=False) as npz:
-            arrays = {name: npz[name] for name in npz.files}
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
-        raise ModelFileError(
-            f"{path} is not a readable NPZ model file ({exc}); it may be truncated or not a "
-            "medseg model"
-        ) from None
-    try:
-        header = json.loads(str(arrays.pop("header")))
-    except (KeyError, ValueError) as exc:
-        raise ModelFileError(f"{path} has no valid JSON header ({exc})") from None
-    if not isinstance(header, dict):
-        raise ModelFileError(f"{path} has no valid JSON header")
-    return prior_from_state(cls, header, arrays, source=str(path))

@@ -12,6 +12,7 @@ from sklearn.utils import check_random_state
 
 from medseg.errors import CohortError, NotFittedError, ParameterError
 from medseg.geometry import procrustes_mean
+from medseg.io import load_arrays, save_arrays
 from medseg.memory import (
     BYTES_PER_TRIPLE,
     check_memory,
@@ -23,6 +24,7 @@ from medseg.memory import (
 from medseg.shape._cliques import _METHODS, clique_table_size, select_cliques
 from medseg.shape._density import DENSITIES, MixtureParams, fit_mixtures, mixture_logpdf
 from medseg.shape._invariants import INVARIANTS
+from medseg.shape._persistence import prior_from_state, prior_state
 
 __all__ = ["TripletPrior", "MIN_TRAINING_SHAPES"]
 
@@ -417,22 +419,18 @@ class TripletPrior(BaseEstimator):
 
     # ------------------------------------------------------------------ persistence
     def save(self, path) -> Path:
-        """Write the fitted prior to one ``.npz`` file (arrays + a JSON header; no pickle).
-
-        The file is written to a temporary name in the target folder and renamed into place.
+        """Write the fitted prior to one ``.npz`` file (:func:`medseg.io.save_arrays`).
 
         Returns
         -------
         Path
         """
-        from medseg.shape._persistence import save_prior
-
         self._check_fitted()
-        return save_prior(self, path)
+        header, arrays = prior_state(self)
+        return save_arrays(path, arrays, header=header)
 
     @classmethod
     def load(cls, path) -> TripletPrior:
         """Read a prior written by :meth:`save`; ``ModelFileError`` if the file is not one."""
-        from medseg.shape._persistence import load_prior
-
-        return load_prior(cls, path)
+        header, arrays = load_arrays(path, what="triplet prior")
+        return prior_from_state(cls, header, arrays, source=str(path))

@@ -1,17 +1,13 @@
-"""The synthetic phantom cohort: a bent, tapered, bumpy bean pressed against look-alikes.
-
-The target is a star-shaped surface defined by a radial function over the unit sphere in a
-straight canonical frame, whose long axis is then bent along a circular arc. Every subject
-draws a few smooth shape-mode coefficients, then a random similarity pose. Surface sites are
-fixed directions on the sphere (a Fibonacci lattice), so the same site index is the same
-anatomical point in every subject: correspondence is exact ground truth.
+"""One phantom subject on a voxel grid: exact label, and an image that is hard on purpose.
 
 The label is rasterised exactly: a voxel centre is inside when, mapped back to the straight
-canonical frame, its distance from the centre is below the radial function in its direction.
-The image is built from soft occupancies (a partial-volume edge), neighbour blobs whose
-intensity is within a few percent of the target's and which overlap part of its surface,
-a textured background with distractor blobs, a smooth multiplicative bias field and Rician
-noise.
+canonical frame of :mod:`._phantom_shape`, its distance from the centre is below the radial
+function in its direction. The image is built from soft occupancies (a partial-volume edge),
+neighbour blobs whose intensity is within a few percent of the target's and which overlap
+part of its surface, a textured background with distractor blobs, a smooth multiplicative
+bias field and Rician noise. :class:`_PhantomSpec` carries the settings every subject of a
+cohort shares; their defaults and meaning are those of
+:func:`~medseg.datasets.make_phantom_cohort`, their one home.
 """
 
 from __future__ import annotations
@@ -24,25 +20,15 @@ from scipy import ndimage, special
 from scipy.spatial.transform import Rotation
 from sklearn.utils import check_random_state
 
+from medseg.datasets._phantom_shape import (
+    _N_MODES,
+    _Shape,
+    _site_frame,
+    _unit,
+    phantom_surface_directions,
+)
 from medseg.io import physical_to_voxel, voxel_to_physical
 
-__all__ = ["make_phantom_case", "phantom_landmark_index", "phantom_surface_directions"]
-
-# Fixed anatomy of the phantom, in the straight canonical frame (mm). The long axis is x,
-# the bend goes towards +y (so +y is the concave side), z is "up".
-_HALF_LENGTH = 15.0  # a: semi-axis along the long axis
-_HALF_WIDTH = 7.0  # b: semi-axis along y at the middle
-_HALF_HEIGHT = 5.5  # c: semi-axis along z at the middle
-_TAPER = 0.35  # radii across the axis grow by (1 + taper * u_x): wide head at +x
-_CURVATURE = 1.0 / 30.0  # 1/mm: bend of the long axis
-_BUMP_DIRECTIONS = np.array(
-    [
-        [0.45, -0.75, 0.50],  # a bump on the convex side of the head, upper part
-        [-0.30, 0.20, 0.93],  # a notch on top of the tail
-    ]
-)
-_BUMP_HEIGHTS = np.array([0.30, -0.20])  # relative change of the radius at the peak
-_BUMP_CONCENTRATION = 7.0  # von Mises concentration of the bumps over the sphere
 # Neighbour blobs: parametric direction of the contact site, semi-axes (normal, t1, t2) in mm.
 _NEIGHBOUR_SITES = np.array(
     [
@@ -51,140 +37,27 @@ _NEIGHBOUR_SITES = np.array(
     ]
 )
 _NEIGHBOUR_AXES = np.array([[8.0, 11.0, 9.0], [7.0, 9.0, 8.0]])
-_N_MODES = 5  # length, thickness, taper, bend, bump height
 
 _TARGET_INTENSITY = 100.0
 _BACKGROUND_INTENSITY = 50.0
 
 
-def _unit(v: np.ndarray) -> np.ndarray:
-    v = np.asarray(v, dtype=float)
-    return v / np.linalg.norm(v, axis=-1, keepdims=True)
-
-
-def phantom_surface_directions(n_points: int) -> np.ndarray:
-    """Fixed parametric surface sites: a Fibonacci lattice on the unit sphere.
-
-    Parameters
-    ----------
-    n_points : int
-        Number of sites.
-
-    Returns
-    -------
-    directions : (n_points, 3) float array
-        Unit vectors in the straight canonical frame; site ``m`` is the surface point
-        ``r(u_m) u_m`` of every subject, hence in exact correspondence across subjects.
-    """
-    m = np.arange(n_points, dtype=float) + 0.5
-    z = 1.0 - 2.0 * m / n_points
-    phi = np.pi * (1.0 + 5.0**0.5) * m
-    rho = np.sqrt(1.0 - z**2)
-    return np.column_stack([rho * np.cos(phi), rho * np.sin(phi), z])
-
-
 @dataclass(frozen=True)
-class _Shape:
-    """Shape parameters of one subject (straight canonical frame, mm)."""
+class _PhantomSpec:
+    """Settings shared by every subject of one phantom cohort (see ``make_phantom_cohort``)."""
 
-    a: float
-    b: float
-    c: float
-    taper: float
-    curvature: float
-    bump_heights: np.ndarray
-
-    @classmethod
-    def from_modes(cls, coefficients: np.ndarray) -> _Shape:
-        z = np.clip(np.asarray(coefficients, dtype=float), -2.5, 2.5)
-        thick = 1.0 + 0.08 * z[1]
-        return cls(
-            a=_HALF_LENGTH * (1.0 + 0.08 * z[0]),
-            b=_HALF_WIDTH * thick,
-            c=_HALF_HEIGHT * thick,
-            taper=_TAPER + 0.08 * z[2],
-            curvature=_CURVATURE * (1.0 + 0.25 * z[3]),
-            bump_heights=_BUMP_HEIGHTS * (1.0 + 0.25 * z[4]),
-        )
-
-    def radius(self, u: np.ndarray) -> np.ndarray:
-        """Radial function r(u) in mm for unit vectors ``u`` (N, 3)."""
-        w = 1.0 + self.taper * u[:, 0]
-        r0 = 1.0 / np.sqrt(
-            (u[:, 0] / self.a) ** 2 + (u[:, 1] / (self.b * w)) ** 2 + (u[:, 2] / (self.c * w)) ** 2
-        )
-        cosines = u @ _unit(_BUMP_DIRECTIONS).T
-        bumps = np.exp(_BUMP_CONCENTRATION * (cosines - 1.0)) @ self.bump_heights
-        return r0 * (1.0 + bumps)
-
-    def straight_points(self, u: np.ndarray) -> np.ndarray:
-        return self.radius(u)[:, None] * u
-
-    def bend(self, p: np.ndarray) -> np.ndarray:
-        """Bend the straight x axis along a circle of radius 1/curvature towards +y."""
-        R = 1.0 / self.curvature
-        theta = p[:, 0] / R
-        arm = R - p[:, 1]
-        return np.column_stack([arm * np.sin(theta), R - arm * np.cos(theta), p[:, 2]])
-
-    def unbend(self, q: np.ndarray) -> np.ndarray:
-        """Inverse of :meth:`bend` (valid away from the centre of curvature)."""
-        R = 1.0 / self.curvature
-        dy = R - q[:, 1]
-        return np.column_stack([R * np.arctan2(q[:, 0], dy), R - np.hypot(q[:, 0], dy), q[:, 2]])
-
-    def normals(self, q: np.ndarray, *, h: float = 1e-3) -> np.ndarray:
-        """Outward unit normals at bent-frame points ``q`` (N, 3): the level-set gradient."""
-        grad = np.stack([self.level(q + h * e) - self.level(q - h * e) for e in np.eye(3)], axis=1)
-        return _unit(grad)
-
-    def level(self, q: np.ndarray) -> np.ndarray:
-        """Implicit function, negative inside: |p| - r(p/|p|) for p = unbend(q), in mm."""
-        p = self.unbend(q)
-        rho = np.linalg.norm(p, axis=1)
-        u = p / np.maximum(rho, 1e-9)[:, None]
-        return rho - self.radius(u)
-
-
-def _mean_shape() -> _Shape:
-    return _Shape.from_modes(np.zeros(_N_MODES))
-
-
-def phantom_landmark_index(n_landmarks: int, n_surface_points: int) -> np.ndarray:
-    """Indices of landmark sites spread evenly over the mean phantom surface.
-
-    Farthest-point sampling over the surface sites of the mean shape, started at the tip of
-    the head; the result depends only on the two counts, so landmarks of every phantom
-    cohort built with the same counts are the same parametric sites.
-
-    Parameters
-    ----------
-    n_landmarks : int
-    n_surface_points : int
-
-    Returns
-    -------
-    index : (n_landmarks,) int array
-        Indices into the surface sites of :func:`phantom_surface_directions`.
-    """
-    shape = _mean_shape()
-    points = shape.bend(shape.straight_points(phantom_surface_directions(n_surface_points)))
-    chosen = [int(np.argmax(points[:, 0]))]
-    dist = np.linalg.norm(points - points[chosen[0]], axis=1)
-    for _ in range(n_landmarks - 1):
-        nxt = int(np.argmax(dist))
-        chosen.append(nxt)
-        dist = np.minimum(dist, np.linalg.norm(points - points[nxt], axis=1))
-    return np.asarray(chosen, dtype=int)
-
-
-def _site_frame(shape: _Shape, direction: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Bent surface point at parametric ``direction`` and an orthonormal frame (n, t1, t2)."""
-    point = shape.bend(shape.straight_points(_unit(direction)[None, :]))
-    normal = shape.normals(point)[0]
-    helper = np.array([0.0, 0.0, 1.0]) if abs(normal[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
-    t1 = _unit(np.cross(normal, helper))
-    return point[0], np.stack([normal, t1, np.cross(normal, t1)])
+    n_surface_points: int
+    size: int
+    anisotropic: bool
+    oblique: bool
+    max_rotation_deg: float
+    scale_range: tuple[float, float]
+    max_translation_mm: float
+    shape_variation: float
+    neighbour_contrast: tuple[float, float]
+    n_distractors: int
+    bias_strength: float
+    noise_std: float
 
 
 def _soft_occupancy(level: np.ndarray, spacing_zyx: np.ndarray, width: float) -> np.ndarray:
@@ -222,45 +95,33 @@ def _box(reference: sitk.Image, lo: np.ndarray, hi: np.ndarray) -> tuple[slice, 
 
 
 def make_phantom_case(
-    random_state,
-    *,
-    n_surface_points: int = 2000,
-    landmark_index: np.ndarray,
-    size: int = 64,
-    anisotropic: bool = False,
-    oblique: bool = False,
-    max_rotation_deg: float = 30.0,
-    scale_range: tuple[float, float] = (0.8, 1.25),
-    max_translation_mm: float = 4.0,
-    shape_variation: float = 1.0,
-    neighbour_contrast: tuple[float, float] = (0.04, 0.08),
-    n_distractors: int = 3,
-    bias_strength: float = 0.15,
-    noise_std: float = 0.06,
+    random_state, spec: _PhantomSpec, landmark_index: np.ndarray
 ) -> tuple[sitk.Image, sitk.Image, dict]:
     """One phantom subject: image, label and metadata (see ``make_phantom_cohort``)."""
     rng = check_random_state(random_state)
-    modes = shape_variation * rng.standard_normal(_N_MODES)
+    modes = spec.shape_variation * rng.standard_normal(_N_MODES)
     shape = _Shape.from_modes(modes)
+    size = spec.size
 
     # Canonical frame: the bent shape, centred on the centroid of its surface sites.
-    directions = phantom_surface_directions(n_surface_points)
+    directions = phantom_surface_directions(spec.n_surface_points)
     bent = shape.bend(shape.straight_points(directions))
     centroid = bent.mean(axis=0)
     canonical = bent - centroid
 
     # Pose: rotation by an angle up to max_rotation_deg about a uniformly random axis.
     axis = _unit(rng.standard_normal(3))
-    angle = np.deg2rad(max_rotation_deg) * rng.uniform(0.0, 1.0)
+    angle = np.deg2rad(spec.max_rotation_deg) * rng.uniform(0.0, 1.0)
     rotation = Rotation.from_rotvec(angle * axis).as_matrix()
-    scale = float(np.exp(rng.uniform(np.log(scale_range[0]), np.log(scale_range[1]))))
-    translation = rng.uniform(-max_translation_mm, max_translation_mm, size=3)
+    low, high = spec.scale_range
+    scale = float(np.exp(rng.uniform(np.log(low), np.log(high))))
+    translation = rng.uniform(-spec.max_translation_mm, spec.max_translation_mm, size=3)
     surface = scale * canonical @ rotation.T + translation
 
     # Grid geometry.
-    spacing = np.array([1.0, 1.0, 2.0]) if anisotropic else np.ones(3)
+    spacing = np.array([1.0, 1.0, 2.0]) if spec.anisotropic else np.ones(3)
     size_xyz = np.round(size / spacing).astype(int)
-    if oblique:
+    if spec.oblique:
         tilt = Rotation.from_rotvec(np.deg2rad(20.0) * _unit(rng.standard_normal(3)))
         direction = tilt.as_matrix()
     else:
@@ -295,7 +156,7 @@ def make_phantom_case(
     # Background: smooth texture with distractor blobs of intermediate intensity.
     texture = ndimage.gaussian_filter(fields.standard_normal(shape_zyx), sigma=3.0 / spacing_zyx)
     image = _BACKGROUND_INTENSITY * (1.0 + 0.2 * texture / texture.std())
-    for _ in range(n_distractors):
+    for _ in range(spec.n_distractors):
         radii = rng.uniform(3.5, 7.0, size=3)
         for _attempt in range(50):
             centre = rng.uniform(-0.4 * size, 0.4 * size, size=3)
@@ -313,7 +174,7 @@ def make_phantom_case(
         image[sub] = image[sub] * (1.0 - occ) + value * occ
 
     # Neighbours of nearly the target's intensity, pressed into part of its surface.
-    contact = np.zeros(n_surface_points, dtype=bool)
+    contact = np.zeros(spec.n_surface_points, dtype=bool)
     probe = bent + 0.75 * shape.normals(bent)
     neighbour_ratios = []
     for site, axes in zip(_NEIGHBOUR_SITES, _NEIGHBOUR_AXES, strict=True):
@@ -325,7 +186,7 @@ def make_phantom_case(
         sub = _box(reference, centre_world - reach, centre_world + reach)
         level = np.linalg.norm(((to_local(world[sub]) - centre_bent) @ frame.T) / axes, axis=-1)
         occ = _soft_occupancy((level - 1.0) * axes.min() * scale, spacing_zyx, width)
-        ratio = 1.0 + rng.choice([-1.0, 1.0]) * rng.uniform(*neighbour_contrast)
+        ratio = 1.0 + rng.choice([-1.0, 1.0]) * rng.uniform(*spec.neighbour_contrast)
         neighbour_ratios.append(float(ratio))
         image[sub] = image[sub] * (1.0 - occ) + _TARGET_INTENSITY * ratio * occ
         # Surface sites whose outside neighbourhood (0.75 mm out) lies in this blob.
@@ -342,9 +203,9 @@ def make_phantom_case(
     terms = [x, y, z, x * y, y * z, x * z, x**2 - 1 / 3, y**2 - 1 / 3, z**2 - 1 / 3]
     coefficients = rng.uniform(-1.0, 1.0, size=len(terms))
     log_bias = sum(c * t for c, t in zip(coefficients, terms, strict=True))
-    log_bias *= np.log1p(bias_strength) / max(np.abs(log_bias).max(), 1e-9)
+    log_bias *= np.log1p(spec.bias_strength) / max(np.abs(log_bias).max(), 1e-9)
     image *= np.exp(log_bias)
-    sigma = noise_std * _TARGET_INTENSITY
+    sigma = spec.noise_std * _TARGET_INTENSITY
     real = image + sigma * fields.standard_normal(shape_zyx)
     imag = sigma * fields.standard_normal(shape_zyx)
     image = np.sqrt(real**2 + imag**2)

@@ -1,8 +1,10 @@
-"""Triangle meshes in and out, and the checks a mesh must pass before it is matched.
+"""Triangle meshes in and out of files: :func:`read_mesh` and :func:`write_mesh`.
 
 A mesh is a pair of plain arrays: ``vertices`` (V, 3) float (x, y, z) and ``faces`` (F, 3)
-int, 0-based. Files are read and written with pyvista (PLY, OBJ, STL, VTK, VTP) and with a
-small built-in reader/writer for OFF, which pyvista cannot read without meshio.
+int, 0-based. Files are read and written with pyvista (PLY, OBJ, STL, VTK, VTP), except
+OFF, which pyvista cannot read without meshio (a small built-in reader and writer), and PLY
+files are read with numpy only (VTK's reader crashes on some corrupt ones). Reading checks
+values, not topology: that is :func:`medseg.matching.check_mesh`'s.
 """
 
 from __future__ import annotations
@@ -18,15 +20,24 @@ from pathlib import Path
 import numpy as np
 import pyvista as pv
 from numpy.typing import ArrayLike
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 
 from medseg.errors import InputFileError, MeshError
 from medseg.io import atomic_write
+from medseg.matching._mesh_check import _check_finite_and_indexed
 
-__all__ = ["read_mesh", "write_mesh", "check_mesh", "MESH_SUFFIXES"]
+__all__ = ["read_mesh", "write_mesh", "MESH_SUFFIXES"]
 
 MESH_SUFFIXES = (".off", ".ply", ".obj", ".stl", ".vtk", ".vtp")
+
+
+def _mesh_suffix(path: Path) -> str:
+    """The lower-case suffix of a mesh file; MeshError unless it is in :data:`MESH_SUFFIXES`."""
+    suffix = path.suffix.lower()
+    if suffix not in MESH_SUFFIXES:
+        raise MeshError(
+            f"{path}: unsupported mesh format {suffix!r}; use one of {', '.join(MESH_SUFFIXES)}."
+        )
+    return suffix
 
 
 def _read_off(path: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -239,11 +250,7 @@ def read_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     path = Path(path)
     if not path.is_file():
         raise InputFileError(f"{path}: mesh file not found.")
-    suffix = path.suffix.lower()
-    if suffix not in MESH_SUFFIXES:
-        raise MeshError(
-            f"{path}: unsupported mesh format {suffix!r}; use one of {', '.join(MESH_SUFFIXES)}."
-        )
+    suffix = _mesh_suffix(path)
     if suffix == ".off":
         vertices, faces = _read_off(path)
     elif suffix == ".ply":
@@ -273,18 +280,13 @@ def read_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
         faces = np.asarray(mesh.faces, dtype=np.int64).reshape(-1, 4)[:, 1:]
     if len(faces) == 0:
         raise MeshError(f"{path}: mesh has no triangles.")
-    bad = ~np.all(np.isfinite(vertices), axis=1)
-    if bad.any():
-        raise MeshError(
-            f"{path}: {int(bad.sum())} vertices have NaN or infinite coordinates (first: vertex "
-            f"{int(np.flatnonzero(bad)[0])}); fix or re-export the mesh."
-        )
-    if faces.min() < 0 or faces.max() >= len(vertices):
-        raise MeshError(
-            f"{path}: face indices must lie in [0, {len(vertices) - 1}] (0-based, "
-            f"{len(vertices)} vertices), got range [{faces.min()}, {faces.max()}]; the file is "
-            "corrupt: re-export the mesh."
-        )
+    _check_finite_and_indexed(
+        vertices,
+        faces,
+        str(path),
+        fix_vertices="fix or re-export the mesh",
+        fix_faces="; the file is corrupt: re-export the mesh",
+    )
     return vertices, faces
 
 
@@ -334,158 +336,15 @@ def write_mesh(path: str | os.PathLike, vertices: ArrayLike, faces: ArrayLike) -
     faces : (F, 3) int array, 0-based
     """
     path = Path(path)
-    suffix = path.suffix.lower()
-    if suffix not in MESH_SUFFIXES:
-        raise MeshError(
-            f"{path}: unsupported mesh format {suffix!r}; use one of {', '.join(MESH_SUFFIXES)}."
-        )
+    suffix = _mesh_suffix(path)
     vertices = np.asarray(vertices, dtype=float)
     faces = np.asarray(faces, dtype=np.int64)
+    cells = np.column_stack([np.full(len(faces), 3), faces])  # vertex count, then indices
     with atomic_write(path) as tmp:
         if suffix == ".off":
             with open(tmp, "w", encoding="ascii") as fh:
                 fh.write(f"OFF\n{len(vertices)} {len(faces)} 0\n")
                 np.savetxt(fh, vertices, fmt="%.9g")
-                np.savetxt(fh, np.column_stack([np.full(len(faces), 3), faces]), fmt="%d")
+                np.savetxt(fh, cells, fmt="%d")
         else:
-            cells = np.column_stack([np.full(len(faces), 3), faces]).ravel()
-            pv.PolyData(vertices, cells).save(str(tmp))
-
-
-def _edges(faces: np.ndarray) -> np.ndarray:
-    """Directed half-edges (3F, 2) in face order: (0,1), (1,2), (2,0) of each face."""
-    return faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
-
-
-def check_mesh(
-    vertices: ArrayLike,
-    faces: ArrayLike,
-    *,
-    name: str = "mesh",
-    allow_boundary: bool = True,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Check that a mesh can be matched; return it with outward-oriented faces.
-
-    The matcher needs a connected, edge-manifold, consistently oriented triangle mesh of genus
-    0: a closed sphere-like surface, or one with holes (boundary loops), which the conformal
-    flattening closes with a fan per loop.
-
-    Parameters
-    ----------
-    vertices : (V, 3) float array
-    faces : (F, 3) int array, 0-based
-    name : str
-        How the mesh is named in error messages (e.g. its file name).
-    allow_boundary : bool
-        Accept meshes with boundary loops (genus 0 with holes). Default True.
-
-    Returns
-    -------
-    vertices : (V, 3) float array
-        Unchanged (a float copy).
-    faces : (F, 3) int64 array
-        The same triangles; on a closed mesh whose normals point inwards (negative enclosed
-        volume) every face is reversed so normals point outwards. This is the only repair:
-        vertex indices, hence the output map, never change.
-
-    Raises
-    ------
-    MeshError
-        Non-finite vertices, face indices out of range, degenerate faces (repeated vertex or
-        zero area), unreferenced vertices, non-manifold edges, inconsistent orientation, more
-        than one connected component, or a genus other than 0; the message says which, how
-        many, and what to do.
-    """
-    v = np.asarray(vertices, dtype=float)
-    f = np.asarray(faces)
-    if v.ndim != 2 or v.shape[1] != 3 or len(v) < 4:
-        raise MeshError(f"{name}: vertices must be a (V, 3) array with V >= 4, got {v.shape}.")
-    if f.ndim != 2 or f.shape[1] != 3 or len(f) < 4:
-        raise MeshError(f"{name}: faces must be an (F, 3) array with F >= 4, got {f.shape}.")
-    if not np.issubdtype(f.dtype, np.integer):
-        if not np.all(np.isfinite(f)) or np.any(f != np.round(f)):
-            raise MeshError(f"{name}: face indices must be integers.")
-    f = f.astype(np.int64)
-    bad = ~np.all(np.isfinite(v), axis=1)
-    if bad.any():
-        raise MeshError(
-            f"{name}: {bad.sum()} vertices have NaN or infinite coordinates "
-            f"(first: {np.flatnonzero(bad)[0]}); fix or remove them."
-        )
-    if f.min() < 0 or f.max() >= len(v):
-        raise MeshError(
-            f"{name}: face indices must lie in [0, {len(v) - 1}] (0-based), "
-            f"got range [{f.min()}, {f.max()}]."
-        )
-    repeated = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 2] == f[:, 0])
-    cross = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-    area = 0.5 * np.linalg.norm(cross, axis=1)
-    scale = np.ptp(v, axis=0).max() or 1.0
-    degenerate = repeated | (area <= 1e-12 * scale**2)
-    if degenerate.any():
-        raise MeshError(
-            f"{name}: {degenerate.sum()} degenerate faces (repeated vertex or zero area; first: "
-            f"face {np.flatnonzero(degenerate)[0]}); remove them, e.g. with "
-            "pyvista's clean() or a remeshing tool."
-        )
-    used = np.zeros(len(v), dtype=bool)
-    used[f.ravel()] = True
-    if not used.all():
-        raise MeshError(
-            f"{name}: {(~used).sum()} vertices belong to no face (first: "
-            f"{np.flatnonzero(~used)[0]}); remove unreferenced vertices."
-        )
-    half = _edges(f)
-    und = np.sort(half, axis=1)
-    key = und[:, 0] * len(v) + und[:, 1]
-    uniq, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
-    if (counts > 2).any():
-        raise MeshError(
-            f"{name}: {(counts > 2).sum()} non-manifold edges (shared by more than two faces); "
-            "the matcher needs a manifold surface."
-        )
-    dkey = half[:, 0] * len(v) + half[:, 1]
-    if len(np.unique(dkey)) != len(dkey):
-        raise MeshError(
-            f"{name}: faces are not consistently oriented (an edge is traversed twice in the "
-            "same direction); reorient the faces (e.g. pyvista's compute_normals("
-            "consistent_normals=True))."
-        )
-    n_comp, _ = connected_components(
-        coo_matrix((np.ones(len(half)), (half[:, 0], half[:, 1])), shape=(len(v), len(v))),
-        directed=False,
-    )
-    if n_comp != 1:
-        raise MeshError(
-            f"{name}: mesh has {n_comp} connected components; match one surface at a time "
-            "(keep the largest component, e.g. pyvista's connectivity('largest'))."
-        )
-    n_edges = len(uniq)
-    n_boundary_edges = int((counts == 1).sum())
-    n_loops = _count_boundary_loops(half, counts[inverse] == 1, len(v))
-    euler = len(v) - n_edges + len(f)
-    genus2 = 2 - euler - n_loops
-    if genus2 != 0:
-        raise MeshError(
-            f"{name}: surface has genus {genus2 / 2:g} (Euler characteristic {euler}, "
-            f"{n_loops} boundary loops); the matcher needs a genus-0 surface (sphere-like, "
-            "possibly with holes): close handles or tunnels first."
-        )
-    if n_boundary_edges and not allow_boundary:
-        raise MeshError(f"{name}: surface has {n_loops} holes; a closed surface is required.")
-    if n_boundary_edges == 0:
-        p0, p1, p2 = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
-        volume = np.einsum("ij,ij->i", p0, np.cross(p1, p2)).sum() / 6.0
-        if volume < 0:
-            f = f[:, ::-1].copy()
-    return v.copy(), f
-
-
-def _count_boundary_loops(half: np.ndarray, is_boundary: np.ndarray, n_vertices: int) -> int:
-    """Number of boundary loops, from the boundary half-edges' connectivity."""
-    b = half[is_boundary]
-    if len(b) == 0:
-        return 0
-    graph = coo_matrix((np.ones(len(b)), (b[:, 0], b[:, 1])), shape=(n_vertices, n_vertices))
-    _, labels = connected_components(graph, directed=False)
-    return len(np.unique(labels[np.unique(b.ravel())]))
+            pv.PolyData(vertices, cells.ravel()).save(str(tmp))

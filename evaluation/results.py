@@ -1,0 +1,132 @@
+"""What a cross-validation run leaves on disk: the per-case CSV and the predicted label maps.
+
+* :data:`COLUMNS`: the columns of ``cases.csv``, one row per (method, fold, case,
+  perturbation angle); :data:`SCORES` are the scores among them, which the report
+  summarises;
+* :func:`read_results`: the typed rows of a ``cases.csv`` (a torn last line, left by a run
+  that was killed mid-write, is dropped);
+* :class:`ResultsFile`: the CSV a run appends to, one flushed row at a time, so that a rerun
+  on the same folder resumes after the rows already there (:func:`result_key` identifies a
+  row);
+* :func:`prediction_path`: where a method's label map of a case is written.
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+from pathlib import Path
+
+import numpy as np
+
+from medseg.io import atomic_write
+
+__all__ = [
+    "SCORES",
+    "COLUMNS",
+    "read_results",
+    "result_key",
+    "ResultsFile",
+    "prediction_path",
+]
+
+#: The scores of one segmentation, in column order (what the report summarises).
+SCORES = (
+    "dice",
+    "hd95",
+    "assd",
+    "landmark_error_mm",
+    "landmark_error_vox",
+    "gap",
+)
+
+#: Columns of the per-case CSV, in order.
+COLUMNS = (
+    "method",
+    "fold",
+    "case",
+    "subject",
+    "perturbation_deg",
+    "scale",
+    *SCORES,
+    "seconds",
+    "fit_seconds",
+)
+_FLOAT_COLUMNS = COLUMNS[COLUMNS.index("perturbation_deg") :]
+
+
+def _format(value) -> str:
+    if isinstance(value, float | np.floating):
+        return repr(float(value))
+    return str(value)
+
+
+def _parse(row: dict) -> dict | None:
+    if set(COLUMNS) - set(row) or any(row[c] is None for c in COLUMNS):
+        return None
+    try:
+        out = {c: row[c] for c in COLUMNS}
+        out["fold"] = int(row["fold"])
+        for c in _FLOAT_COLUMNS:
+            out[c] = float(row[c])
+    except (TypeError, ValueError):
+        return None
+    return out
+
+
+def read_results(path: str | os.PathLike) -> list[dict]:
+    """Rows of a per-case CSV written by :func:`medseg.evaluation.runner.run_folds`.
+
+    Typed (``fold`` an int, the scores and times floats); torn lines are dropped, and a
+    missing file has no rows.
+    """
+    path = Path(path)
+    if not path.is_file():
+        return []
+    with path.open(newline="", encoding="utf-8") as fh:
+        rows = [_parse(r) for r in csv.DictReader(fh)]
+    return [r for r in rows if r is not None]
+
+
+def result_key(method: str, fold: int, case: str, angle: float) -> tuple:
+    """What identifies a row: method, fold, case and perturbation angle (rounded)."""
+    return (str(method), int(fold), str(case), round(float(angle), 6))
+
+
+def _row_key(row: dict) -> tuple:
+    return result_key(row["method"], row["fold"], row["case"], row["perturbation_deg"])
+
+
+class ResultsFile:
+    """The per-case CSV: rewritten clean on open (drops a torn last line), then appended.
+
+    Attributes
+    ----------
+    path : pathlib.Path
+    done : set of tuple
+        :func:`result_key` of every row in the file.
+    """
+
+    def __init__(self, path: Path):
+        self.path = path
+        rows = read_results(path)
+        with atomic_write(path) as tmp:
+            with tmp.open("w", newline="", encoding="utf-8") as fh:
+                writer = csv.DictWriter(fh, fieldnames=COLUMNS)
+                writer.writeheader()
+                for r in rows:
+                    writer.writerow({c: _format(r[c]) for c in COLUMNS})
+        self.done = {_row_key(r) for r in rows}
+
+    def append(self, row: dict) -> None:
+        """Write one row and flush it to disk before returning."""
+        with self.path.open("a", newline="", encoding="utf-8") as fh:
+            csv.DictWriter(fh, fieldnames=COLUMNS).writerow({c: _format(row[c]) for c in COLUMNS})
+            fh.flush()
+            os.fsync(fh.fileno())
+        self.done.add(_row_key(row))
+
+
+def prediction_path(folder: str | os.PathLike, method: str, case_id: str) -> Path:
+    """Where the label map predicted by ``method`` for ``case_id`` is written."""
+    return Path(folder) / method / f"{case_id}.nii.gz"

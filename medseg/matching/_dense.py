@@ -1,0 +1,71 @@
+"""Dense stage of the matcher (Zeng et al., CVPR 2010, Sec. 4): every vertex of A chooses
+among its dense candidates (the modes of its Möbius votes, :mod:`medseg.matching._voting`).
+
+The singleton cost is the vote density (as a negative log) plus the descriptor cost; the
+cliques are the faces of A, each costing the squared edge-length distortion of its image
+plus ``lambda_gauss`` if the image triangle is mirrored against B's normals. The energy is
+minimised by the same dual decomposition as the sparse stage, with the one-to-one
+constraint kept but vertices allowed to stay unmatched.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from medseg.geometry import face_areas
+from medseg.matching._potentials import singleton_potentials
+from medseg.matching._solver import MatchingProblem, solve_matching
+
+
+def _dense_stage(a, b, modes, dens, *, opts):
+    """Dense matching among the (V_A, K) candidate vertices ``modes`` of B, with vote
+    densities ``dens`` (0: missing mode). Returns the (V_A,) map, the solver result and the
+    fraction of vertices the solver matched (the rest take their best candidate)."""
+    n, k = modes.shape
+    # duplicate modes (fewer distinct modes than k) are padded with inf cost
+    dup = np.zeros_like(modes, dtype=bool)
+    for m in range(1, k):
+        dup[:, m] = (modes[:, :m] == modes[:, m : m + 1]).any(axis=1) | (dens[:, m] <= 0)
+    desc = singleton_potentials(a.descriptor, b.descriptor, modes)
+    desc = desc / max(np.median(desc), 1e-12)
+    unary = -np.log(np.maximum(dens, 1e-6)) + opts["lambda_descriptor"] * desc
+    unary = np.where(dup, np.inf, unary)
+    f = a.faces
+    labels = modes[f]  # (F, 3, k)
+    q = b.vertices
+    p = a.vertices
+    h = np.sqrt(face_areas(p, f).mean() * 4 / np.sqrt(3))  # mean edge length
+    cost = np.zeros((len(f), k, k, k))
+    ii, jj, kk = np.meshgrid(np.arange(k), np.arange(k), np.arange(k), indexing="ij")
+    qi = q[labels[:, 0][:, ii]]  # (F, k, k, k, 3)
+    qj = q[labels[:, 1][:, jj]]
+    qk = q[labels[:, 2][:, kk]]
+    for (u, pu), (w, pw) in (
+        ((qi, p[f[:, 0]]), (qj, p[f[:, 1]])),
+        ((qj, p[f[:, 1]]), (qk, p[f[:, 2]])),
+        ((qk, p[f[:, 2]]), (qi, p[f[:, 0]])),
+    ):
+        la = np.linalg.norm(pu - pw, axis=1)[:, None, None, None]
+        lb = np.linalg.norm(u - w, axis=-1)
+        cost += ((lb - la) / h) ** 2
+    # orientation of the image triangle against B's normals: mirror flips cost lambda_gauss
+    nrm = np.cross(qj - qi, qk - qi)
+    nb = (b.normals[labels[:, 0][:, ii]] + b.normals[labels[:, 1][:, jj]]) + b.normals[
+        labels[:, 2][:, kk]
+    ]
+    flipped = np.einsum("...c,...c->...", nrm, nb) < 0
+    cost = opts["lambda_mobius"] * np.minimum(cost, 50.0) + opts["lambda_gauss"] * flipped
+    problem = MatchingProblem(
+        unary=unary,
+        candidates=modes,
+        cliques=f,
+        clique_costs=cost,
+        n_targets=len(q),
+        unmatched_cost=float(np.quantile(unary[np.isfinite(unary)], 0.95)),
+        unmatched_clique_cost=float(np.quantile(cost, 0.9)),
+    )
+    res = solve_matching(problem, max_iter=opts["dense_max_iter"], progress=opts["progress"])
+    best = np.argmin(unary, axis=1)
+    x = np.where(res.x < k, res.x, best)
+    forward = modes[np.arange(n), x]
+    return forward, res, float(np.mean(res.x < k))
