@@ -1,5 +1,7 @@
 """The evaluation report: tables, JSON summary and figures from the per-case CSV.
 
+(Slightly over 400 lines: the four figures are small functions of one idea, the report.)
+
 :func:`write_report` reads ``cases.csv`` (written by :func:`medseg.evaluation.runner.run_folds`)
 and writes, next to it:
 

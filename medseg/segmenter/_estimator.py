@@ -2,7 +2,9 @@
 
 :class:`ShapePriorSegmenter` composes the parts of the package and nothing else: the
 correspondence step, the detectors, the prior, the solver and the reconstruction know only
-plain arrays and images, and this module is the one place that wires them together.
+plain arrays and images, and this module is the one place that wires them together. It
+is longer than the project's other modules because the class docstring documents every
+parameter with what it measured; the logic is ``fit`` and ``segment``.
 
 References
 ----------

@@ -24,6 +24,9 @@ ASM would start it).
    Every step is defined in physical space, so the search commutes with a similarity
    transform of the image and its start.
 
+The point distribution model itself is :mod:`medseg.shape._point_distribution`; this module
+(just over 400 lines) holds the profile models, the search and the model's file.
+
 References
 ----------
 T. F. Cootes, C. J. Taylor, D. H. Cooper, J. Graham, "Active shape models - their training

@@ -1,4 +1,11 @@
-"""The pose-invariant triplet shape prior of Wang et al. (MICCAI 2010)."""
+"""The pose-invariant triplet shape prior of Wang et al. (MICCAI 2010).
+
+One estimator, :class:`TripletPrior`: its parameter table, ``fit`` (cliques, invariants,
+densities) and the potentials for one configuration or whole candidate tables. Over 400
+lines because the potential tables are built here chunk by chunk under a memory budget;
+the pieces it composes (invariants, cliques, densities, the file mapping) have modules of
+their own.
+"""
 
 from __future__ import annotations
 
