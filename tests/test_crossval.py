@@ -16,10 +16,10 @@ import SimpleITK as sitk
 from sklearn.utils import check_random_state
 
 from medseg.datasets import Case, Cohort
-from medseg.errors import CohortError, LabelError, MedsegError
+from medseg.errors import CohortError, LabelError, MedsegError, ParameterError
 from medseg.evaluation.folds import check_cohort, fold_seed, make_folds
 from medseg.evaluation.methods import MethodSpec
-from medseg.evaluation.perturbation import perturb_case, random_similarity
+from medseg.evaluation.perturbation import perturb_case, pose_change, random_similarity
 from medseg.evaluation.results import COLUMNS, read_results
 from medseg.evaluation.runner import run_folds
 from medseg.io import voxel_to_physical
@@ -311,6 +311,56 @@ def test_perturbed_case_keeps_grid_and_moves_landmarks_with_the_label():
     np.testing.assert_allclose(
         np.linalg.norm(moved_lm - centre, axis=1), change.scale * radius, atol=0.3
     )
+
+
+@pytest.mark.parametrize("fill", ["zeros", "noise", "border"])
+def test_padded_field_of_view_keeps_the_voxels_and_fills_the_rest(fill):
+    case = tiny_cohort(n_subjects=1, per_subject=1, seed=5)[0]
+    image, label = case.load_image(), case.load_label()
+    still = pose_change(angle_deg=0.0)
+    moved_image, moved_label, moved_lm = perturb_case(
+        image, label, case.landmarks, still, pad_mm=6.0, fill=fill, random_state=0
+    )
+    pad = np.ceil(6.0 / np.asarray(image.GetSpacing())).astype(int)[::-1]  # (z, y, x)
+    assert moved_image.GetSize() == tuple(int(s) + 2 * int(p) for s, p in
+                                          zip(image.GetSize(), pad[::-1], strict=True))  # fmt: skip
+    assert moved_image.GetDirection() == image.GetDirection()
+    big = sitk.GetArrayFromImage(moved_image)
+    inner = tuple(slice(p, -p) for p in pad)
+    np.testing.assert_allclose(big[inner], sitk.GetArrayFromImage(image), atol=1e-4)
+    np.testing.assert_array_equal(
+        sitk.GetArrayFromImage(moved_label)[inner], sitk.GetArrayFromImage(label)
+    )
+    # the same physical points: voxel -> mm through each image's own geometry
+    np.testing.assert_allclose(
+        moved_image.TransformIndexToPhysicalPoint([int(p) for p in pad[::-1]]),
+        image.GetOrigin(), atol=1e-9,
+    )  # fmt: skip
+    np.testing.assert_allclose(moved_lm, case.landmarks)
+    outside = np.ones(big.shape, dtype=bool)
+    outside[inner] = False
+    a = sitk.GetArrayFromImage(image).astype(float)
+    border = np.concatenate([f.ravel() for f in (a[0], a[-1], a[:, 0], a[:, -1], a[..., 0],
+                                                 a[..., -1])])  # fmt: skip
+    if fill == "zeros":
+        assert np.all(big[outside] == 0)
+    elif fill == "noise":  # the border's mean and spread
+        assert big[outside].mean() == pytest.approx(border.mean(), abs=0.1 * border.std() + 1e-3)
+        assert big[outside].std() == pytest.approx(border.std(), rel=0.1)
+    else:
+        np.testing.assert_allclose(big[outside], np.median(border), rtol=1e-6)
+
+
+def test_pose_change_of_a_given_size():
+    change = pose_change(angle_deg=120.0, scale=0.8, random_state=3)
+    assert change.scale == 0.8 and change.angle_deg == 120.0
+    angle = np.degrees(np.arccos((np.trace(change.rotation) - 1) / 2))
+    assert angle == pytest.approx(120.0)
+    with pytest.raises(ParameterError):
+        pose_change(angle_deg=200.0)
+    with pytest.raises(ParameterError):
+        perturb_case(sitk.Image(4, 4, 4, sitk.sitkUInt8), sitk.Image(4, 4, 4, sitk.sitkUInt8),
+                     None, change, fill="mirror")  # fmt: skip
 
 
 # ----------------------------------------------------------------------------- references
