@@ -9,7 +9,7 @@ Examples
 --------
 python benchmarks/bench_evaluation.py --methods asm --folds loo --n-jobs 1 2
 python benchmarks/bench_evaluation.py --methods shape_prior detection asm --folds 5 \
-    --n-jobs 2 --perturbation 15 30 45
+    --n-jobs 2 --perturbation rot45 scale0.8 random
 python benchmarks/bench_evaluation.py --cohort ../shared/data/hippocampus --labels 1 2 \
     --folds 5 --n-jobs 2
 """
@@ -31,7 +31,7 @@ def main() -> None:
     parser.add_argument("--folds", default="5", help="'loo' or k. Default: 5.")
     parser.add_argument("--labels", nargs="+", type=int, default=[1])
     parser.add_argument("--n-jobs", nargs="+", type=int, default=[1, 2])
-    parser.add_argument("--perturbation", nargs="*", type=float, default=[])
+    parser.add_argument("--perturbation", nargs="*", default=[], help="condition names, e.g. rot90 random")
     parser.add_argument("--max-subjects", type=int, default=None)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument(

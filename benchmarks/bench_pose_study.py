@@ -9,18 +9,24 @@ Usage::
 Trains a model (labels 1+2, default settings, seeded) on ``--train`` hippocampus cases of
 subjects that are not tested (``subjects.csv``), or loads ``--model`` (written there after
 training, so a second run reuses it). Each of ``--test`` cases of other subjects is then
-segmented under each condition, with no initialisation of any kind:
+segmented under each condition, with no initialisation of any kind. The conditions are
+those of ``medseg-evaluate --perturbation``, defined in one place,
+:mod:`medseg.evaluation.perturbation` (``CONDITIONS``, ``perturb_condition``); the default
+list is:
 
 * ``acquired``: as it is;
 * ``pad_zeros`` / ``pad_noise``: the same voxels in a field of view padded by 15 mm of zeros,
   or of noise with the mean and spread of the image's border voxels;
-* ``rot45`` ... ``rot180``: a rotation about a random axis through the image centre;
-* ``scale0.8`` ... ``scale1.25``: a scaling about the image centre;
+* ``rot45`` ... ``rot180``: a rotation about a random axis through the image centre (any
+  ``rotN``, N in 0-180, is accepted);
+* ``scale0.8`` ... ``scale1.25``: a scaling about the image centre (any ``scaleS``,
+  0.5 < S < 2);
 * ``random``: rotation of up to 45 degrees about a random axis and a scale in 0.8-1.25
   (log-uniform), the issue's protocol;
 
 all but ``acquired`` and ``pad_*`` resampled onto the grid padded by 15 mm (zeros outside),
-the label map with the same transform, and scored on it. Each condition can be run with
+the label map with the same transform, and scored on it. Case ``i`` of the cohort is
+perturbed with the seed ``--seed + i``. Each condition can be run with
 stages swapped for their reference (``--variants``):
 
 * ``default``: the model as trained;
@@ -46,26 +52,21 @@ import time
 from pathlib import Path
 
 import numpy as np
-import SimpleITK as sitk
 
 from medseg.datasets import load_cohort
 from medseg.detection import CandidateSet, gradient_directions
 from medseg.evaluation.metrics import dice, hd95
-from medseg.evaluation.perturbation import PoseChange, perturb_case, pose_change
+from medseg.evaluation.perturbation import (
+    CONDITIONS,
+    PoseChange,
+    parse_condition,
+    perturb_condition,
+)
 from medseg.io import physical_to_voxel, select_labels
 from medseg.segmenter import ShapePriorSegmenter, load_model
 from medseg.shape import OrientationPrior, TripletPrior
 
-PAD_MM = 15.0
 LABELS = (1, 2)
-CONDITIONS = {
-    "acquired": dict(),
-    "pad_zeros": dict(pad_mm=PAD_MM, fill="zeros"),
-    "pad_noise": dict(pad_mm=PAD_MM, fill="noise"),
-    **{f"rot{a}": dict(angle=a, pad_mm=PAD_MM, fill="zeros") for a in (45, 90, 135, 180)},
-    **{f"scale{s}": dict(scale=s, pad_mm=PAD_MM, fill="zeros") for s in (0.8, 0.9, 1.1, 1.25)},
-    "random": dict(random=True, pad_mm=PAD_MM, fill="zeros"),
-}
 VARIANTS = ("default", "carried", "no_refine", "no_handedness", "scale_free")
 
 
@@ -87,37 +88,6 @@ def _split(cohort, n_train: int, n_test: int, seed: int):
             train.append(i)
     train = rng.permutation(train)[:n_train]
     return sorted(int(i) for i in train), test
-
-
-def _image_centre(image: sitk.Image) -> np.ndarray:
-    size = np.asarray(image.GetSize(), dtype=float)
-    return np.asarray(image.TransformContinuousIndexToPhysicalPoint(((size - 1) / 2).tolist()))
-
-
-def _condition(image, label, name: str, seed: int):
-    """The perturbed (image, label), the change and its centre for one condition."""
-    spec = CONDITIONS[name]
-    rng = np.random.default_rng(seed)
-    if spec.get("random"):
-        change = pose_change(
-            angle_deg=float(rng.uniform(0, 45)),
-            scale=float(np.exp(rng.uniform(np.log(0.8), np.log(1.25)))),
-            random_state=int(rng.integers(2**31)),
-        )
-    else:
-        change = pose_change(
-            angle_deg=float(spec.get("angle", 0.0)),
-            scale=float(spec.get("scale", 1.0)),
-            random_state=int(rng.integers(2**31)),
-        )
-    centre = _image_centre(image)
-    if name == "acquired":
-        return image, label, change, centre
-    moved, moved_label, _ = perturb_case(
-        image, label, None, change, centre=centre, pad_mm=spec["pad_mm"], fill=spec["fill"],
-        random_state=int(rng.integers(2**31)),
-    )  # fmt: skip
-    return moved, moved_label, change, centre
 
 
 def _carried(cands: CandidateSet, change: PoseChange, centre, image) -> CandidateSet:
@@ -159,6 +129,12 @@ def _scale_free(model: ShapePriorSegmenter, cohort, train) -> ShapePriorSegmente
     return other
 
 
+def _order(condition: str) -> tuple:
+    """Table order: the default conditions first, as listed, then the others by name."""
+    known = list(CONDITIONS)
+    return (known.index(condition), "") if condition in known else (len(known), condition)
+
+
 def _summary(path: Path) -> None:
     rows = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
     base = {(r["case"], r["variant"]): r["dice"] for r in rows if r["condition"] == "acquired"}
@@ -169,8 +145,8 @@ def _summary(path: Path) -> None:
         table.setdefault((r["condition"], r["variant"]), []).append(r)
     print(f"{'condition':<12}{'variant':<15}{'n':>3}{'Dice':>8}{'loss':>8}{'vs default':>11}"
           f"{'HD95':>7}{'agree mm':>10}")  # fmt: skip
-    for (cond, var), rs in sorted(table.items(), key=lambda kv: (list(CONDITIONS).index(
-            kv[0][0]), VARIANTS.index(kv[0][1]))):  # fmt: skip
+    order = sorted(table, key=lambda cv: (_order(cv[0]), VARIANTS.index(cv[1])))
+    for (cond, var), rs in ((key, table[key]) for key in order):
         d = np.array([r["dice"] for r in rs])
         same = [base.get((r["case"], var), np.nan) for r in rs]
         ref = [base_default.get(r["case"], np.nan) for r in rs]
@@ -191,18 +167,26 @@ def main(argv=None) -> int:
     parser.add_argument("--test", type=int, default=10)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--jobs", type=int, default=1)
-    parser.add_argument("--conditions", default=",".join(CONDITIONS))
+    parser.add_argument(
+        "--conditions",
+        default=",".join(CONDITIONS),
+        help="Comma-separated: acquired, pad_zeros, pad_noise, rotN (0-180), scaleS "
+        "(0.5-2), random. Default: " + ",".join(CONDITIONS),
+    )
     parser.add_argument("--variants", default="default")
     parser.add_argument("--summary", action="store_true", help="Summarise --out and stop.")
     args = parser.parse_args(argv)
     if args.summary:
         _summary(args.out)
         return 0
-    conditions = [c for c in args.conditions.split(",") if c]
     variants = [v for v in args.variants.split(",") if v]
-    for name in conditions + variants:
-        if name not in CONDITIONS and name not in VARIANTS:
-            raise SystemExit(f"unknown condition or variant {name!r}")
+    for name in variants:
+        if name not in VARIANTS:
+            raise SystemExit(f"unknown variant {name!r}: choose among {', '.join(VARIANTS)}")
+    try:  # canonical names (rot90.0 -> rot90), as the results file records them
+        conditions = [parse_condition(c).name for c in args.conditions.split(",") if c]
+    except ValueError as exc:  # medseg's ParameterError
+        raise SystemExit(str(exc)) from None
     cohort = load_cohort(args.data)
     train, test = _split(cohort, args.train, args.test, args.seed)
     if args.model is not None and (args.model / "model.json").is_file():
@@ -232,7 +216,9 @@ def main(argv=None) -> int:
         label = select_labels(case.load_label(), LABELS)
         acquired = model.segment(image)
         for cond in conditions:
-            moved, moved_label, change, centre = _condition(image, label, cond, args.seed + i)
+            moved, moved_label, _, change, centre = perturb_condition(
+                cond, image, label, random_state=args.seed + i
+            )
             for var in variants:
                 if (case.case_id, cond, var) in done:
                     continue

@@ -7,8 +7,9 @@
 * :mod:`medseg.evaluation.results`: the per-case CSV (columns, reading, resuming);
 * :mod:`medseg.evaluation.methods`: the method and baselines compared, built per fold;
 * :mod:`medseg.evaluation.references`: reference landmarks of each fold's cases;
-* :mod:`medseg.evaluation.baselines`: the active shape model;
-* :mod:`medseg.evaluation.perturbation`: pose perturbation of test cases;
+* :mod:`medseg.evaluation.baselines`: the active shape model, multi-atlas registration;
+* :mod:`medseg.evaluation.perturbation`: pose perturbation of test cases, the named
+  conditions of the study (shared with ``benchmarks/bench_pose_study.py``);
 * :mod:`medseg.evaluation.report`: summary table, summary.json, figures;
 * :mod:`medseg.evaluation.metrics`: Dice, HD95, ASSD, landmark error.
 

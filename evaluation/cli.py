@@ -19,15 +19,15 @@ from medseg.progress import show_progress
 
 def build_parser() -> argparse.ArgumentParser:
     from medseg.evaluation.evaluate import DEFAULT_PERTURBATION
-    from medseg.evaluation.methods import METHOD_NAMES
+    from medseg.evaluation.methods import DEFAULT_METHODS, METHOD_NAMES
 
     parser = command_parser(
         "medseg-evaluate",
         "Leave-one-subject-out or k-fold cross-validation (grouped by subject) of the "
         "shape-prior segmenter and its baselines (detection without prior, active shape "
-        "model), with a pose-perturbation study. Writes a report folder: cases.csv, "
-        "summary.md, summary.json, boxplots, perturbation curves, overlays. Rerunning "
-        "on the same folder resumes.",
+        "model; optionally multi-atlas registration), with a pose-perturbation study. "
+        "Writes a report folder: cases.csv, summary.md, summary.json, boxplots, "
+        "perturbation curves, overlays. Rerunning on the same folder resumes.",
         seed=True,
     )
     parser.add_argument("-o", "--output", required=True, help="Report folder.")
@@ -37,18 +37,21 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument(
         "--methods",
-        default=",".join(METHOD_NAMES),
-        help=f"Comma-separated methods. Default: {','.join(METHOD_NAMES)}.",
+        default=",".join(DEFAULT_METHODS),
+        help=f"Comma-separated methods among {','.join(METHOD_NAMES)}. "
+        f"Default: {','.join(DEFAULT_METHODS)}.",
     )
     parser.add_argument(
         "--landmarks", type=int, default=None, help="Landmarks per shape. Default: automatic."
     )
     parser.add_argument(
         "--perturbation",
-        default=",".join(f"{a:g}" for a in DEFAULT_PERTURBATION),
+        default=",".join(DEFAULT_PERTURBATION),
         help=(
-            "Rotation angles (degrees) of the pose-perturbation study, comma-separated; "
-            "'none' skips it. Default: " + ",".join(f"{a:g}" for a in DEFAULT_PERTURBATION)
+            "Conditions of the pose-perturbation study, comma-separated: rotN (rotation by "
+            "N degrees, 0-180), scaleS (0.5 < S < 2), pad_zeros, pad_noise (15 mm larger "
+            "field of view), random (up to 45 degrees and x0.8-1.25); 'none' skips it. "
+            "Default: " + ",".join(DEFAULT_PERTURBATION)
         ),
     )
     parser.add_argument(
@@ -78,22 +81,26 @@ def _folds(text: str):
     return k
 
 
-def _angles(text: str) -> tuple[float, ...]:
+def _conditions(text: str) -> tuple[str, ...]:
+    from medseg.evaluation.perturbation import parse_condition
+
     if text.strip().lower() in ("", "none"):
         return ()
-    try:
-        return tuple(float(a) for a in text.split(","))
-    except ValueError:
-        raise MedsegError(
-            f"--perturbation {text!r}: give angles in degrees, e.g. 15,30,45"
-        ) from None
+    names = tuple(n.strip() for n in text.split(",") if n.strip())
+    for name in names:
+        try:
+            parse_condition(name)
+        except MedsegError as exc:
+            raise MedsegError(f"--perturbation: {exc}") from None
+    return names
 
 
 def _run(args: argparse.Namespace) -> int:
     from medseg.evaluation.evaluate import run_evaluation
 
     # the arguments' text first: a typo is reported before the cohort is read
-    folds, labels, angles = _folds(args.folds), parse_labels(args.label), _angles(args.perturbation)
+    folds, labels = _folds(args.folds), parse_labels(args.label)
+    conditions = _conditions(args.perturbation)
     out = run_evaluation(
         load_dataset(args),
         args.output,
@@ -104,7 +111,7 @@ def _run(args: argparse.Namespace) -> int:
         seed=args.seed,
         n_jobs=args.jobs,
         scheduler=args.scheduler,
-        perturbation=angles,
+        perturbation=conditions,
         max_subjects=args.max_subjects,
         progress=show_progress(args.quiet),
     )

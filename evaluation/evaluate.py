@@ -16,14 +16,22 @@ import numpy as np
 
 from medseg.errors import CohortError
 from medseg.evaluation.folds import check_cohort
-from medseg.evaluation.methods import METHOD_NAMES, MethodSpec, default_methods, resolve_methods
+from medseg.evaluation.methods import (
+    DEFAULT_METHODS,
+    MethodSpec,
+    default_methods,
+    resolve_methods,
+)
+from medseg.evaluation.perturbation import check_conditions
 from medseg.evaluation.report import write_report
 from medseg.evaluation.runner import run_folds
 
 __all__ = ["run_evaluation", "resolve_cohort", "DEFAULT_PERTURBATION"]
 
-#: Rotation angles (degrees) of the default pose-perturbation study.
-DEFAULT_PERTURBATION = (15.0, 30.0, 45.0)
+#: Conditions of the default pose-perturbation study (besides the unperturbed case): one of
+#: each kind, rotation only, scale only, and the random similarity of the issue's protocol
+#: (as many perturbed copies as the earlier default of three angles, so about the same cost).
+DEFAULT_PERTURBATION = ("rot90", "scale1.25", "random")
 
 
 def resolve_cohort(source, *, seed: int = 0, max_subjects: int | None = None):
@@ -62,16 +70,17 @@ def run_evaluation(
     output_dir: str | os.PathLike,
     *,
     folds: str | int = "loo",
-    methods: Iterable[str | MethodSpec] = METHOD_NAMES,
+    methods: Iterable[str | MethodSpec] = DEFAULT_METHODS,
     labels: Sequence[int] = (1,),
     n_landmarks: int | None = None,
     seed: int = 0,
     n_jobs: int = 1,
     scheduler: str | None = None,
-    perturbation: Sequence[float] = DEFAULT_PERTURBATION,
+    perturbation: Sequence[str] = DEFAULT_PERTURBATION,
     max_subjects: int | None = None,
     segmenter_params: dict | None = None,
     asm_params: dict | None = None,
+    multi_atlas_params: dict | None = None,
     report: bool = True,
     progress: bool = False,
 ) -> Path:
@@ -84,13 +93,16 @@ def run_evaluation(
     output_dir : path
         Report folder: ``cases.csv``, ``run.json``, ``predictions/``, ``summary.md``,
         ``summary.json`` and the figures (see :func:`medseg.evaluation.report.write_report`).
-        Rerunning on the same folder resumes: finished (fold, method, case, angle) rows are
-        kept and not recomputed.
+        Rerunning on the same folder resumes: finished (fold, method, case, condition) rows
+        are kept and not recomputed.
     folds : "loo" or int, default "loo"
         Leave-one-subject-out, or k-fold grouped by subject.
     methods : iterable of str or MethodSpec, default ("shape_prior", "detection", "asm")
         The method, its detection-only baseline (same fitted model, ``use_prior=False``)
-        and the active shape model; :class:`MethodSpec` objects add other estimators.
+        and the active shape model; ``"multi_atlas"`` adds the multi-atlas registration
+        baseline (:mod:`medseg.evaluation.baselines.multi_atlas`; not in the default, it
+        registers 9 atlases per test input); :class:`MethodSpec` objects add other
+        estimators.
     labels : sequence of int, default (1,)
         Labels forming the structure (their union), e.g. ``(1, 2)`` for the hippocampus.
     n_landmarks : int, optional
@@ -102,12 +114,14 @@ def run_evaluation(
         Folds in parallel on local processes (joblib).
     scheduler : str, optional
         ``"tcp://host:port"`` of a running Dask scheduler: folds run on its workers.
-    perturbation : sequence of float, default (15, 30, 45)
-        Rotation angles (degrees) of the pose-perturbation study; empty to skip it.
+    perturbation : sequence of str, default ("rot90", "scale1.25", "random")
+        Named conditions of the pose-perturbation study
+        (:mod:`medseg.evaluation.perturbation`: ``rotN``, ``scaleS``, ``pad_zeros``,
+        ``pad_noise``, ``random``); empty to skip it.
     max_subjects : int, optional
         Evaluate only the cases of the first ``max_subjects`` subjects.
-    segmenter_params, asm_params : dict, optional
-        Extra constructor arguments of the segmenter / the ASM.
+    segmenter_params, asm_params, multi_atlas_params : dict, optional
+        Extra constructor arguments of the segmenter / the ASM / the multi-atlas baseline.
     report : bool, default True
         Write the report after the runs.
     progress : bool, default False
@@ -119,10 +133,13 @@ def run_evaluation(
 
     Raises
     ------
+    ParameterError
+        Before any work: an unknown perturbation condition.
     CohortError, LabelError
         Before any work: an empty cohort, a single subject, a label no case contains,
         folds too small to train on, a resume with different settings.
     """
+    check_conditions(perturbation)  # a typo in a name is refused before the cohort is read
     labels = tuple(int(v) for v in labels)
     cohort = resolve_cohort(cohort, seed=seed, max_subjects=max_subjects)
     check_cohort(cohort, labels=labels, folds=folds, progress=progress)
@@ -138,6 +155,7 @@ def run_evaluation(
                     n_landmarks=n_landmarks,
                     segmenter_params=segmenter_params,
                     asm_params=asm_params,
+                    multi_atlas_params=multi_atlas_params,
                 )
             )
             + specs

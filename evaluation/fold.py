@@ -3,10 +3,14 @@
 A :class:`FoldTask` holds everything one fold needs and is picklable, so that
 :func:`run_fold` runs the same in this process, in a joblib worker or on a Dask worker
 (:mod:`medseg.evaluation.runner` hands them out). For each test case, and each of its
-pose-perturbed copies, every method variant listed in the task's ``todo`` is segmented and
-scored (:data:`medseg.evaluation.results.SCORES`: Dice, HD95, ASSD, landmark error, duality
-gap); the unperturbed predictions can be written for the report. A method that raises a
-:class:`~medseg.errors.MedsegError` on a case is scored as a failure and the fold goes on.
+pose-perturbed copies (one per named condition of
+:func:`medseg.evaluation.perturbation.perturb_condition`, seeded by the run's seed, the case
+and the condition), every method variant listed in the task's ``todo`` is segmented and
+scored on the perturbed grid (:data:`medseg.evaluation.results.SCORES`: Dice, HD95, ASSD,
+landmark error, duality gap); the unperturbed predictions can be written for the report. A
+method that raises a :class:`~medseg.errors.MedsegError` on a case is scored as a failure
+and the fold goes on; a method without landmarks (``result.landmarks is None``, e.g. the
+multi-atlas baseline) gets NaN landmark errors.
 """
 
 from __future__ import annotations
@@ -24,7 +28,7 @@ import numpy as np
 from medseg.errors import MedsegError
 from medseg.evaluation.methods import MethodSpec
 from medseg.evaluation.metrics import landmark_errors, score_segmentation
-from medseg.evaluation.perturbation import perturb_case, random_similarity
+from medseg.evaluation.perturbation import UNPERTURBED, perturb_condition
 from medseg.evaluation.references import fold_landmarks
 from medseg.evaluation.results import prediction_path, result_key
 from medseg.io import read_image, select_labels, write_image
@@ -44,7 +48,7 @@ class FoldTask:
     specs: tuple[MethodSpec, ...]
     labels: tuple[int, ...]
     n_landmarks: int | None
-    angles: tuple[float, ...]
+    conditions: tuple[str, ...]  # canonical names, "acquired" first (check_conditions)
     todo: frozenset
     predictions_dir: str | None = None
 
@@ -61,16 +65,22 @@ _FAILED = {
 }
 
 
-def _perturbation_seed(seed: int, case_id: str, angle: float) -> int:
-    key = [int(seed), 7919, int(round(angle * 1000))] + [ord(ch) for ch in case_id]
+def _perturbation_seed(seed: int, case_id: str, condition: str) -> int:
+    """The seed of one perturbed copy: a function of the run's seed, the case and the
+    condition only (not of the fold, the method or the order of work)."""
+    key = [int(seed), 7919, *(ord(ch) for ch in condition), 0, *(ord(ch) for ch in case_id)]
     return int(np.random.SeedSequence(key).generate_state(1)[0])
 
 
 def _score(result, mask, reference_landmarks, image) -> dict:
     label = read_image(result.label)
     scores = score_segmentation(label, mask)
-    est = np.asarray(result.landmarks, dtype=float)
-    if reference_landmarks is not None and est.shape == np.shape(reference_landmarks):
+    est = None if result.landmarks is None else np.asarray(result.landmarks, dtype=float)
+    if (
+        est is not None
+        and reference_landmarks is not None
+        and est.shape == np.shape(reference_landmarks)
+    ):
         mm, vox = landmark_errors(est, reference_landmarks, image)
         lm_mm, lm_vox = float(mm.mean()), float(vox.mean())
     else:
@@ -96,21 +106,24 @@ def _save_prediction(result, image, folder: Path, method: str, case_id: str) -> 
 def _test_inputs(task: FoldTask, references) -> list[tuple]:
     """The test inputs, original and perturbed, shared by all methods.
 
-    One ``(case, angle, scale, image, mask, reference_landmarks)`` per test case and angle.
+    One ``(case, condition, change, image, mask, reference_landmarks)`` per test case and
+    condition that some method still needs.
     """
+    needed = {(key[2], key[3]) for key in task.todo}
     inputs = []
     for case, ref_lm in zip(task.test, references, strict=True):
+        if not any((case.case_id, c) in needed for c in task.conditions):
+            continue
         image = case.load_image()
         mask = select_labels(case.load_label(), task.labels)
-        for angle in task.angles:
-            if angle == 0:
-                inputs.append((case, angle, 1.0, image, mask, ref_lm))
+        for condition in task.conditions:
+            if (case.case_id, condition) not in needed:
                 continue
-            change = random_similarity(
-                angle, random_state=_perturbation_seed(task.run_seed, case.case_id, angle)
+            seed = _perturbation_seed(task.run_seed, case.case_id, condition)
+            moved, moved_mask, moved_lm, change, _ = perturb_condition(
+                condition, image, mask, ref_lm, random_state=seed
             )
-            moved = perturb_case(image, mask, ref_lm, change)
-            inputs.append((case, angle, change.scale) + moved)
+            inputs.append((case, condition, change, moved, moved_mask, moved_lm))
     return inputs
 
 
@@ -127,8 +140,8 @@ def run_fold(task: FoldTask, on_row: Callable[[dict], None] | None = None) -> li
     Returns
     -------
     rows : list of dict
-        One per (method, test case, perturbation angle) listed in ``task.todo``, with the
-        columns :data:`medseg.evaluation.results.COLUMNS`.
+        One per (method, test case, perturbation condition) listed in ``task.todo``, with
+        the columns :data:`medseg.evaluation.results.COLUMNS`.
     """
     rows: list[dict] = []
     train, references = fold_landmarks(
@@ -152,7 +165,7 @@ def run_fold(task: FoldTask, on_row: Callable[[dict], None] | None = None) -> li
         shares = "candidates" in inspect.signature(estimator.segment).parameters
         detected: dict[int, tuple] = {}
         for name, kwargs, item in wanted:
-            case, angle, scale, image, mask, ref_lm = item
+            case, condition, change, image, mask, ref_lm = item
             extra, reused = {}, 0.0
             if shares and id(item) in detected:
                 extra["candidates"], reused = detected[id(item)]
@@ -161,7 +174,7 @@ def run_fold(task: FoldTask, on_row: Callable[[dict], None] | None = None) -> li
                 result = estimator.segment(image, **kwargs, **extra)
             except MedsegError as exc:  # one failed case is a result, not the end of the run
                 print(
-                    f"{name} failed on {case.case_id} ({angle:g} degrees), scored as Dice 0: {exc}",
+                    f"{name} failed on {case.case_id} ({condition}), scored as Dice 0: {exc}",
                     file=sys.stderr,
                 )
                 result = None
@@ -173,13 +186,14 @@ def run_fold(task: FoldTask, on_row: Callable[[dict], None] | None = None) -> li
                 "fold": task.fold,
                 "case": case.case_id,
                 "subject": str(case.subject),
-                "perturbation_deg": float(angle),
-                "scale": float(scale),
+                "perturbation": condition,
+                "perturbation_deg": float(change.angle_deg),
+                "scale": float(change.scale),
                 **(_FAILED if result is None else _score(result, mask, ref_lm, image)),
                 "seconds": seconds,
                 "fit_seconds": fit_seconds,
             }
-            if result is not None and task.predictions_dir is not None and angle == 0:
+            if result is not None and task.predictions_dir is not None and condition == UNPERTURBED:
                 _save_prediction(result, image, Path(task.predictions_dir), name, case.case_id)
             rows.append(row)
             if on_row is not None:

@@ -1,17 +1,34 @@
 """Pose perturbation of test cases: similarity transforms and larger fields of view.
 
 The paper's central claim is pose invariance: the same test case, rotated, scaled or seen in
-a larger field of view, should be segmented as well as the original. :func:`random_similarity`
-draws a transform of a given size (rotation angle about a random axis, scale growing with
-it), :func:`pose_change` builds one of a given rotation and scale, and :func:`perturb_case`
-applies it to an image, its label map and its reference landmarks, on the image's own grid
-or on a grid padded by a margin: the image is resampled linearly, the label with nearest
-neighbour, the landmarks are mapped forward; what lies outside the original image is filled
-with a constant, zeros, or noise like the image's border.
+a larger field of view, should be segmented as well as the original. :func:`pose_change`
+builds a transform of a given rotation and scale (:func:`random_similarity`: the older
+protocol, a rotation with a scale coupled to it), and :func:`perturb_case` applies it to an
+image, its label map and its reference landmarks, on the image's own grid or on a grid
+padded by a margin: the image is resampled linearly, the label with nearest neighbour, the
+landmarks are mapped forward; what lies outside the original image is filled with a
+constant, zeros, or noise like the image's border.
+
+The named *conditions* of the pose study live here, shared by ``medseg-evaluate`` and
+``benchmarks/bench_pose_study.py`` (:func:`parse_condition`, :func:`perturb_condition`,
+:data:`CONDITIONS`):
+
+* ``acquired``: the case as it is (:data:`UNPERTURBED`);
+* ``pad_zeros`` / ``pad_noise``: the same voxels in a field of view padded by
+  :data:`PAD_MM` of zeros, or of noise with the mean and spread of the image's border;
+* ``rotN`` (``N`` in 0-180 degrees, e.g. ``rot90``): a rotation about a random axis through
+  the image centre;
+* ``scaleS`` (``S`` in (0.5, 2), e.g. ``scale0.8``): a scaling about the image centre;
+* ``random``: a rotation uniform in 0-45 degrees about a random axis and a scale
+  log-uniform in 0.8-1.25 (the issue's protocol);
+
+all but ``acquired`` and ``pad_*`` resampled onto the grid padded by :data:`PAD_MM` with
+zeros outside.
 """
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 
 import numpy as np
@@ -21,15 +38,21 @@ from scipy.spatial.transform import Rotation
 from sklearn.utils import check_random_state
 
 from medseg.errors import ParameterError
-from medseg.io import resample_like, voxel_to_physical
+from medseg.io import padded_grid, resample_affine, voxel_to_physical
 
 __all__ = [
     "PoseChange",
+    "Condition",
+    "CONDITIONS",
+    "UNPERTURBED",
+    "PAD_MM",
+    "parse_condition",
+    "check_conditions",
+    "perturb_condition",
+    "image_centre",
     "random_similarity",
     "pose_change",
     "perturb_case",
-    "padded_grid",
-    "FILLS",
     "MAX_ROTATION_DEG",
     "MAX_SCALE",
 ]
@@ -38,10 +61,30 @@ __all__ = [
 #: at this rotation.
 MAX_ROTATION_DEG = 45.0
 MAX_SCALE = 1.25
-#: What fills the voxels of a perturbed image that lie outside the original: the median of
-#: its border voxels, zeros (a scanner's empty field of view), or Gaussian noise with the
-#: mean and standard deviation of its border voxels (tissue-like background).
-FILLS = ("border", "zeros", "noise")
+#: Margin (mm) of the padded field of view of every condition but ``acquired``.
+PAD_MM = 15.0
+#: The condition of the unperturbed test case (the reference of every Dice loss).
+UNPERTURBED = "acquired"
+#: The named conditions of the pose study, in table order; :func:`parse_condition` also
+#: accepts any ``rotN`` (0 <= N <= 180) and ``scaleS`` (0.5 < S < 2).
+CONDITIONS = (
+    UNPERTURBED,
+    "pad_zeros",
+    "pad_noise",
+    "rot45",
+    "rot90",
+    "rot135",
+    "rot180",
+    "scale0.8",
+    "scale0.9",
+    "scale1.1",
+    "scale1.25",
+    "random",
+)
+# The draws of the ``random`` condition: rotation angle and scale ranges.
+_RANDOM_MAX_ANGLE_DEG = 45.0
+_RANDOM_SCALES = (0.8, 1.25)
+_NUMBER = r"(\d+(?:\.\d*)?|\.\d+)"
 
 
 @dataclass(frozen=True)
@@ -118,30 +161,6 @@ def pose_change(*, angle_deg: float = 0.0, scale: float = 1.0, random_state=None
     return PoseChange(rotation=rotation, scale=float(scale), angle_deg=float(angle_deg))
 
 
-def _border_values(image: sitk.Image) -> np.ndarray:
-    a = sitk.GetArrayViewFromImage(image)
-    faces = [a[0], a[-1], a[:, 0], a[:, -1], a[:, :, 0], a[:, :, -1]]
-    return np.concatenate([f.ravel() for f in faces]).astype(float)
-
-
-def padded_grid(image: sitk.Image, margin_mm: float) -> sitk.Image:
-    """An empty image on ``image``'s grid extended by ``margin_mm`` on every side.
-
-    Same spacing and direction; the margin is rounded up to whole voxels per axis, so the
-    original voxels stay on the new grid.
-    """
-    if not margin_mm >= 0:
-        raise ParameterError(f"`margin_mm` must be >= 0, got {margin_mm}")
-    spacing = np.asarray(image.GetSpacing(), dtype=float)
-    pad = np.ceil(float(margin_mm) / spacing - 1e-9).astype(int)
-    size = np.asarray(image.GetSize()) + 2 * pad
-    grid = sitk.Image([int(v) for v in size], sitk.sitkUInt8)
-    grid.SetSpacing(image.GetSpacing())
-    grid.SetDirection(image.GetDirection())
-    grid.SetOrigin(image.TransformContinuousIndexToPhysicalPoint([-float(p) for p in pad]))
-    return grid
-
-
 def perturb_case(
     image: sitk.Image,
     label: sitk.Image,
@@ -169,7 +188,7 @@ def perturb_case(
     pad_mm : float, default 0
         Margin added to the grid on every side (:func:`padded_grid`).
     fill : {"border", "zeros", "noise"}, default "border"
-        What fills the voxels outside the original image (:data:`FILLS`).
+        What fills the voxels outside the original image (:data:`medseg.io.FILLS`).
     random_state : int, RandomState or None
         Seeds the noise fill.
 
@@ -181,35 +200,169 @@ def perturb_case(
         neighbour.
     landmarks : (N, 3) float array, mm, or None
     """
-    if fill not in FILLS:
-        raise ParameterError(f"`fill` must be one of {FILLS}, got {fill!r}")
     if centre is None:
         fg = np.argwhere(sitk.GetArrayViewFromImage(label) > 0)
         if not len(fg):
             fg = np.argwhere(np.ones(sitk.GetArrayViewFromImage(label).shape, dtype=bool))
         centre = voxel_to_physical(label, fg).mean(axis=0)
     centre = np.asarray(centre, dtype=float)
-    # Resample pulls output points back into the input: the inverse of the change.
-    inverse = sitk.AffineTransform(3)
-    inverse.SetMatrix((change.rotation.T / change.scale).ravel().tolist())
-    inverse.SetCenter(centre.tolist())
     grid = padded_grid(image, pad_mm) if pad_mm > 0 else image
-    border = _border_values(image)
-    constant = 0.0 if fill == "zeros" else float(np.median(border))
-    moved_image = resample_like(
-        image, grid, is_label=False, transform=inverse, default_value=constant
-    )
-    if fill == "noise":
-        ones = sitk.Image(image.GetSize(), sitk.sitkUInt8) + 1
-        ones.CopyInformation(image)
-        inside = sitk.GetArrayFromImage(resample_like(ones, grid, is_label=True, transform=inverse))
-        values = sitk.GetArrayFromImage(sitk.Cast(moved_image, sitk.sitkFloat32))
-        rng = check_random_state(random_state)
-        outside = inside == 0
-        values[outside] = rng.normal(border.mean(), border.std(), size=int(outside.sum()))
-        noisy = sitk.GetImageFromArray(values)
-        noisy.CopyInformation(grid)
-        moved_image = noisy
-    moved_label = resample_like(label, grid, is_label=True, transform=inverse)
+    matrix = change.scale * change.rotation  # y = matrix x + (centre - matrix centre)
+    offset = centre - matrix @ centre
+    moved_image = resample_affine(image, matrix, offset, grid, fill=fill, random_state=random_state)
+    moved_label = resample_affine(label, matrix, offset, grid, is_label=True)
     moved_landmarks = None if landmarks is None else change.apply(landmarks, centre)
     return moved_image, moved_label, moved_landmarks
+
+
+# ----------------------------------------------------------------------------- conditions
+
+
+@dataclass(frozen=True)
+class Condition:
+    """One named condition of the pose study (see :func:`parse_condition`).
+
+    Attributes
+    ----------
+    name : str
+        Canonical name (``rot90``, ``scale0.8``, ...): what the results file records.
+    kind : {"acquired", "pad", "rotation", "scale", "random"}
+    angle_deg : float
+        Rotation angle (0 unless ``kind == "rotation"``; drawn per case for ``random``).
+    scale : float
+        Scale (1 unless ``kind == "scale"``; drawn per case for ``random``).
+    pad_mm : float
+        Margin of the padded grid (0 for ``acquired``).
+    fill : str
+        What fills the padding (:data:`medseg.io.FILLS`).
+    """
+
+    name: str
+    kind: str
+    angle_deg: float = 0.0
+    scale: float = 1.0
+    pad_mm: float = PAD_MM
+    fill: str = "zeros"
+
+
+def _unknown(name) -> ParameterError:
+    return ParameterError(
+        f"unknown perturbation condition {name!r}: give acquired, pad_zeros, pad_noise, "
+        "random, rotN (N degrees, 0-180, e.g. rot90) or scaleS (0.5 < S < 2, e.g. scale0.8)"
+    )
+
+
+def parse_condition(name: str) -> Condition:
+    """The condition a name stands for.
+
+    Parameters
+    ----------
+    name : str
+        ``acquired``, ``pad_zeros``, ``pad_noise``, ``random``, ``rotN`` with ``N`` in
+        [0, 180] degrees, or ``scaleS`` with ``S`` in (0.5, 2). Numbers are canonicalised
+        (``rot90.0`` is ``rot90``), so one condition has one name.
+
+    Raises
+    ------
+    ParameterError
+        Any other name (or a number where a name is expected), with the accepted forms.
+    """
+    if not isinstance(name, str):
+        raise _unknown(name)
+    text = name.strip()
+    if text == UNPERTURBED:
+        return Condition(UNPERTURBED, "acquired", pad_mm=0.0, fill="border")
+    if text in ("pad_zeros", "pad_noise"):
+        return Condition(text, "pad", fill=text[len("pad_") :])
+    if text == "random":
+        return Condition("random", "random")
+    if match := re.fullmatch("rot" + _NUMBER, text):
+        angle = float(match.group(1))
+        if 0.0 <= angle <= 180.0:
+            return Condition(f"rot{angle:g}", "rotation", angle_deg=angle)
+    if match := re.fullmatch("scale" + _NUMBER, text):
+        scale = float(match.group(1))
+        if 0.5 < scale < 2.0:
+            return Condition(f"scale{scale:g}", "scale", scale=scale)
+    raise _unknown(name)
+
+
+def check_conditions(names) -> tuple[str, ...]:
+    """Canonical names of some conditions, ``acquired`` first, each once.
+
+    The unperturbed case is always part of a study (it is what the others are compared
+    with), so it is added when missing. A single string is one name.
+
+    Raises
+    ------
+    ParameterError
+        An unknown name (:func:`parse_condition`).
+    """
+    if isinstance(names, str):
+        names = [names]
+    canonical = [parse_condition(n).name for n in names]
+    return tuple(dict.fromkeys([UNPERTURBED, *canonical]))
+
+
+def image_centre(image: sitk.Image) -> np.ndarray:
+    """Physical centre (mm) of an image's grid: the fixed point of every condition."""
+    size = np.asarray(image.GetSize(), dtype=float)
+    return np.asarray(image.TransformContinuousIndexToPhysicalPoint(((size - 1) / 2).tolist()))
+
+
+def perturb_condition(
+    name: str,
+    image: sitk.Image,
+    label: sitk.Image,
+    landmarks: ArrayLike | None = None,
+    *,
+    random_state=None,
+) -> tuple[sitk.Image, sitk.Image, np.ndarray | None, PoseChange, np.ndarray]:
+    """A test case under one named condition of the pose study.
+
+    Parameters
+    ----------
+    name : str
+        A condition (:func:`parse_condition`).
+    image, label : 3D SimpleITK images
+        The case and its label map (or binary mask) on the same grid.
+    landmarks : (N, 3) float array, mm, or None
+        Reference landmarks, mapped with the case.
+    random_state : int, numpy Generator or None
+        Seeds everything random in the condition, in a fixed order (the ``random``
+        condition's angle and scale, then the rotation axis, then the noise fill), so the
+        same seed gives the same perturbed case.
+
+    Returns
+    -------
+    image, label : SimpleITK images
+        For ``acquired`` the inputs themselves; otherwise on the grid padded by ``pad_mm``
+        (:func:`perturb_case`), the transform about the image centre.
+    landmarks : (N, 3) float array, mm, or None
+    change : PoseChange
+        The transform applied (identity for ``acquired`` and ``pad_*``).
+    centre : (3,) float array, mm
+        Its fixed point, the centre of the input image's grid (:func:`image_centre`).
+    """
+    condition = parse_condition(name)
+    rng = np.random.default_rng(random_state)
+    angle, scale = condition.angle_deg, condition.scale
+    if condition.kind == "random":
+        angle = float(rng.uniform(0.0, _RANDOM_MAX_ANGLE_DEG))
+        scale = float(np.exp(rng.uniform(*np.log(_RANDOM_SCALES))))
+    change = pose_change(angle_deg=angle, scale=scale, random_state=int(rng.integers(2**31)))
+    centre = image_centre(image)
+    if condition.kind == "acquired":
+        moved_landmarks = None if landmarks is None else np.asarray(landmarks, dtype=float)
+        return image, label, moved_landmarks, change, centre
+    moved, moved_label, moved_landmarks = perturb_case(
+        image,
+        label,
+        landmarks,
+        change,
+        centre=centre,
+        pad_mm=condition.pad_mm,
+        fill=condition.fill,
+        random_state=int(rng.integers(2**31)),
+    )
+    return moved, moved_label, moved_landmarks, change, centre

@@ -8,14 +8,19 @@ and writes, next to it:
 * ``summary.md``: per method (unperturbed cases) the number of cases, Dice, HD95, ASSD,
   landmark error in mm and voxels, duality gap and seconds per case (mean +- standard
   deviation, NaN-aware), the landmark-error ratio of every baseline to the method, and the
-  perturbation table (Dice and landmark error per rotation angle);
+  pose-perturbation tables: mean Dice per method by rotation angle (the ``rotN``
+  conditions, 0 the unperturbed case), by scale (the ``scaleS`` conditions, 1 the
+  unperturbed case), and one row per other condition (``random``, ``pad_zeros``, ...) with
+  the Dice loss against the unperturbed case;
 * ``summary.json``: ``metric_per_case`` (the rows), ``mean`` (per method, per metric) and
   ``foreground_mean`` (nnU-Net's key; one structure is scored, the union of the chosen
   labels, so it holds the same per-method means), plus ``perturbation`` (per method and
-  angle); written with ``sort_keys=True``, NaN and infinities as ``null``;
+  condition name: mean Dice, HD95, landmark errors, angle, scale, Dice loss, count);
+  written with ``sort_keys=True``, NaN and infinities as ``null``;
 * ``landmark_error_boxplot.png``: landmark error by method, as in the paper's Fig. 2(c),
   with a Dice panel;
-* ``perturbation.png``: Dice and landmark error against the perturbation angle;
+* ``perturbation.png``: mean Dice against the rotation angle and against the scale, and the
+  Dice loss of the other conditions;
 * ``overlays.png``: best, median and worst case (by Dice) of the main method, three
   orthogonal slices through the reference structure, reference and prediction contours;
 * ``surface.png``: off-screen pyvista rendering of the median case's predicted surface
@@ -36,7 +41,8 @@ from pathlib import Path
 import numpy as np
 import SimpleITK as sitk
 
-from medseg.errors import InputFileError
+from medseg.errors import InputFileError, MedsegError
+from medseg.evaluation.perturbation import CONDITIONS, UNPERTURBED, parse_condition
 from medseg.evaluation.results import SCORES, prediction_path, read_results
 from medseg.io import atomic_write, read_image, select_labels, voxel_to_physical
 
@@ -53,7 +59,9 @@ _HEADERS = {
     "gap": "duality gap",
     "seconds": "s / case",
 }
-_PREFERRED = ("shape_prior", "detection", "asm")
+_PREFERRED = ("shape_prior", "detection", "asm", "multi_atlas")
+# Means per condition in summary.json, besides the Dice loss, angle, scale and count.
+_PERTURBATION_SCORES = ("dice", "landmark_error_mm", "landmark_error_vox", "hd95")
 
 
 def _methods(rows: list[dict]) -> list[str]:
@@ -73,8 +81,12 @@ def _nan_stats(values: Sequence[float]) -> dict:
     }
 
 
+def _unperturbed(rows: list[dict]) -> list[dict]:
+    return [r for r in rows if r["perturbation"] == UNPERTURBED]
+
+
 def summarise(rows: list[dict]) -> dict:
-    """Per-method statistics of the unperturbed rows and means per perturbation angle.
+    """Per-method statistics of the unperturbed rows and means per perturbation condition.
 
     Parameters
     ----------
@@ -85,25 +97,61 @@ def summarise(rows: list[dict]) -> dict:
     -------
     summary : dict
         ``{"methods": [...], "stats": {method: {metric: {"mean", "std", "median", "n",
-        "n_finite"}}}, "perturbation": {method: {angle: {metric: mean}}}}``. Means skip NaN
-        and infinite values; ``n_finite`` says how many were used.
+        "n_finite"}}}, "perturbation": {method: {condition: {"dice", "hd95",
+        "landmark_error_mm", "landmark_error_vox", "angle_deg", "scale", "dice_loss",
+        "n"}}}}``. Means skip NaN and infinite values; ``n_finite`` says how many were used.
+        ``dice_loss`` is the mean over the cases that have both rows of the unperturbed
+        Dice minus the condition's (positive: worse under the perturbation; 0 for
+        ``acquired`` itself, NaN without unperturbed rows).
     """
     methods = _methods(rows)
-    base = [r for r in rows if r["perturbation_deg"] == 0]
+    base = _unperturbed(rows)
     stats = {
         m: {k: _nan_stats([r[k] for r in base if r["method"] == m]) for k in METRICS}
         for m in methods
     }
+    reference = {(r["method"], r["fold"], r["case"]): r["dice"] for r in base}
     groups: dict = defaultdict(list)
     for r in rows:
-        groups[(r["method"], r["perturbation_deg"])].append(r)
+        groups[(r["method"], r["perturbation"])].append(r)
     perturbation: dict = defaultdict(dict)
-    for (m, angle), rs in sorted(groups.items()):
-        perturbation[m][f"{angle:g}"] = {
+    for (m, condition), rs in sorted(groups.items()):
+        losses = [
+            reference[key] - r["dice"]
+            for r in rs
+            if (key := (m, r["fold"], r["case"])) in reference
+        ]
+        perturbation[m][condition] = {
             k: _nan_stats([r[k] for r in rs])["mean"]
-            for k in ("dice", "landmark_error_mm", "landmark_error_vox", "hd95")
-        } | {"n": len(rs)}
+            for k in (*_PERTURBATION_SCORES, "perturbation_deg", "scale")
+        } | {"dice_loss": _nan_stats(losses)["mean"], "n": len(rs)}
+        perturbation[m][condition]["angle_deg"] = perturbation[m][condition].pop("perturbation_deg")
     return {"methods": methods, "stats": stats, "perturbation": dict(perturbation)}
+
+
+def _condition_groups(summary: dict) -> tuple[list, list, list]:
+    """The conditions of a summary, by table: ``[(angle, name)]`` of the rotations (0 the
+    unperturbed case), ``[(scale, name)]`` of the scalings (1 the unperturbed case), and
+    the names of the others (``random``, ``pad_*``, ``rot0``, ``scale1``, unknown names)."""
+    names = {c for per in summary["perturbation"].values() for c in per}
+    rotations, scales, others = [], [], []
+    for name in names - {UNPERTURBED}:
+        try:
+            condition = parse_condition(name)
+        except MedsegError:  # a hand-made results file: shown as it is
+            condition = None
+        if condition is not None and condition.kind == "rotation" and condition.angle_deg > 0:
+            rotations.append((condition.angle_deg, name))
+        elif condition is not None and condition.kind == "scale" and condition.scale != 1:
+            scales.append((condition.scale, name))
+        else:
+            others.append(name)
+    if UNPERTURBED in names:
+        rotations += [(0.0, UNPERTURBED)] if rotations else []
+        scales += [(1.0, UNPERTURBED)] if scales else []
+    known = {c: i for i, c in enumerate(CONDITIONS)}
+    others.sort(key=lambda c: (known.get(c, len(known)), c))
+    return sorted(rotations), sorted(scales), others
 
 
 # ----------------------------------------------------------------------------- tables
@@ -140,28 +188,60 @@ def _markdown(summary: dict, title: str) -> str:
             other = stats[m]["landmark_error_mm"]["mean"]
             ratio = other / ref if ref and np.isfinite(ref) else math.nan
             lines.append(f"- `{m}`: {_fmt(ratio, 2)} x")
-    angles = sorted({a for m in summary["perturbation"].values() for a in m}, key=float)
-    if len(angles) > 1:
+    lines += _perturbation_tables(summary)
+    return "\n".join(lines) + "\n"
+
+
+def _perturbation_tables(summary: dict) -> list[str]:
+    methods, per = summary["methods"], summary["perturbation"]
+    rotations, scales, others = _condition_groups(summary)
+    if not (rotations or scales or others):
+        return []
+    lines = [
+        "",
+        "## Pose perturbation",
+        "",
+        "Each test case under named conditions (`medseg.evaluation.perturbation`): all but "
+        "the unperturbed case on its grid padded by 15 mm, the transforms about the image "
+        "centre.",
+    ]
+
+    def cell(m: str, name: str) -> str:
+        return _fmt(per[m][name]["dice"]) if name in per.get(m, {}) else "-"
+
+    for title, columns in (
+        ("Mean Dice by rotation angle (rotation only; 0: unperturbed).", rotations),
+        ("Mean Dice by scale (scale only; 1: unperturbed).", scales),
+    ):
+        if not columns:
+            continue
+        unit = " deg" if columns is rotations else ""
         lines += [
             "",
-            "## Pose perturbation",
+            title,
             "",
-            "Mean Dice / landmark error (mm) per rotation angle (scale grows with it up to "
-            "x1.25 or x0.8 at 45 degrees).",
-            "",
-            "| method | " + " | ".join(f"{a} deg" for a in angles) + " |",
-            "|---|" + "---:|" * len(angles),
+            "| method | " + " | ".join(f"{v:g}{unit}" for v, _ in columns) + " |",
+            "|---|" + "---:|" * len(columns),
         ]
-        for m in methods:
-            per = summary["perturbation"].get(m, {})
+        lines += [f"| {m} | " + " | ".join(cell(m, n) for _, n in columns) + " |" for m in methods]
+    if others:
+        lines += [
+            "",
+            "Other conditions: mean Dice (loss: unperturbed minus perturbed Dice, paired by "
+            "case; positive is worse).",
+            "",
+            "| condition | " + " | ".join(methods) + " |",
+            "|---|" + "---:|" * len(methods),
+        ]
+        for name in others:
             cells = [
-                f"{_fmt(per[a]['dice'])} / {_fmt(per[a]['landmark_error_mm'], 2)}"
-                if a in per
+                f"{_fmt(per[m][name]['dice'])} (loss {_fmt(per[m][name]['dice_loss'])})"
+                if name in per.get(m, {})
                 else "-"
-                for a in angles
+                for m in methods
             ]
-            lines.append(f"| {m} | " + " | ".join(cells) + " |")
-    return "\n".join(lines) + "\n"
+            lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    return lines
 
 
 def _jsonable(value):
@@ -201,7 +281,7 @@ def _figure_path_write(fig, path: Path) -> None:
 def _boxplots(rows: list[dict], methods: list[str], path: Path) -> None:
     import matplotlib.pyplot as plt
 
-    base = [r for r in rows if r["perturbation_deg"] == 0]
+    base = _unperturbed(rows)
     fig, axes = plt.subplots(1, 2, figsize=(4 + 1.6 * len(methods), 4))
     for ax, key, label in (
         (axes[0], "landmark_error_mm", "landmark error (mm)"),
@@ -221,16 +301,37 @@ def _boxplots(rows: list[dict], methods: list[str], path: Path) -> None:
 def _perturbation_plot(summary: dict, methods: list[str], path: Path) -> None:
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
-    for m in methods:
-        per = summary["perturbation"].get(m, {})
-        angles = sorted(per, key=float)
-        x = [float(a) for a in angles]
-        axes[0].plot(x, [per[a]["dice"] for a in angles], "o-", label=m)
-        axes[1].plot(x, [per[a]["landmark_error_mm"] for a in angles], "o-", label=m)
-    for ax, label in zip(axes, ("mean Dice", "mean landmark error (mm)"), strict=True):
-        ax.set_xlabel("rotation of the test case (degrees; scale up to x1.25 / x0.8)")
-        ax.set_ylabel(label)
+    rotations, scales, others = _condition_groups(summary)
+    panels = [p for p, items in (("rot", rotations), ("scale", scales), ("other", others)) if items]
+    fig, axes = plt.subplots(1, len(panels), figsize=(5 * len(panels), 4), squeeze=False)
+    for ax, panel in zip(axes[0], panels, strict=True):
+        if panel == "other":
+            width = 0.8 / len(methods)
+            for j, m in enumerate(methods):
+                per = summary["perturbation"].get(m, {})
+                loss = [per[c]["dice_loss"] if c in per else np.nan for c in others]
+                ax.bar(np.arange(len(others)) + (j - (len(methods) - 1) / 2) * width, loss,
+                       width, label=m)  # fmt: skip
+            ax.set_xticks(range(len(others)), others, rotation=20)
+            ax.axhline(0.0, color="k", linewidth=0.8)
+            ax.set_ylabel("Dice loss against unperturbed")
+            ax.set_title("Other conditions")
+        else:
+            items = rotations if panel == "rot" else scales
+            for m in methods:
+                per = summary["perturbation"].get(m, {})
+                kept = [(v, per[c]["dice"]) for v, c in items if c in per]
+                ax.plot([v for v, _ in kept], [d for _, d in kept], "o-", label=m)
+            if panel == "rot":
+                ax.set_xlabel("rotation of the test case (degrees; 0: unperturbed)")
+                ax.set_title("Rotation only")
+            else:
+                ax.set_xscale("log")
+                ax.set_xticks([v for v, _ in items], [f"{v:g}" for v, _ in items])
+                ax.minorticks_off()
+                ax.set_xlabel("scale of the test case (1: unperturbed)")
+                ax.set_title("Scale only")
+            ax.set_ylabel("mean Dice")
         ax.grid(alpha=0.3)
         ax.legend()
     fig.suptitle("Pose perturbation of the test cases")
@@ -239,11 +340,7 @@ def _perturbation_plot(summary: dict, methods: list[str], path: Path) -> None:
 
 
 def _pick_cases(rows: list[dict], method: str) -> list[tuple[str, dict]]:
-    base = [
-        r
-        for r in rows
-        if r["method"] == method and r["perturbation_deg"] == 0 and np.isfinite(r["dice"])
-    ]
+    base = [r for r in _unperturbed(rows) if r["method"] == method and np.isfinite(r["dice"])]
     if not base:
         return []
     # By Dice, ties broken by landmark error (worse error ranks lower).
@@ -384,7 +481,7 @@ def write_report(
     with atomic_write(folder / "summary.json") as tmp:
         tmp.write_text(_summary_json(rows, summary), encoding="utf-8")
     _boxplots(rows, methods, folder / "landmark_error_boxplot.png")
-    if len({r["perturbation_deg"] for r in rows}) > 1:
+    if any(_condition_groups(summary)):
         _perturbation_plot(summary, methods, folder / "perturbation.png")
     picks = _pick_cases(rows, main)
     if cohort is not None and picks:

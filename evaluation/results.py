@@ -1,10 +1,13 @@
 """What a cross-validation run leaves on disk: the per-case CSV and the predicted label maps.
 
 * :data:`COLUMNS`: the columns of ``cases.csv``, one row per (method, fold, case,
-  perturbation angle); :data:`SCORES` are the scores among them, which the report
-  summarises;
+  perturbation condition): ``perturbation`` is the condition's name
+  (:mod:`medseg.evaluation.perturbation`, ``acquired`` for the unperturbed case),
+  ``perturbation_deg`` and ``scale`` the rotation angle and scale it applied to that case;
+  :data:`SCORES` are the scores among them, which the report summarises;
 * :func:`read_results`: the typed rows of a ``cases.csv`` (a torn last line, left by a run
-  that was killed mid-write, is dropped);
+  that was killed mid-write, is dropped; a file of an older version, without the
+  ``perturbation`` column, is refused with an :class:`~medseg.errors.InputFileError`);
 * :class:`ResultsFile`: the CSV a run appends to, one flushed row at a time, so that a rerun
   on the same folder resumes after the rows already there (:func:`result_key` identifies a
   row);
@@ -19,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from medseg.errors import InputFileError
 from medseg.io import atomic_write
 
 __all__ = [
@@ -46,6 +50,7 @@ COLUMNS = (
     "fold",
     "case",
     "subject",
+    "perturbation",
     "perturbation_deg",
     "scale",
     *SCORES,
@@ -78,23 +83,43 @@ def read_results(path: str | os.PathLike) -> list[dict]:
     """Rows of a per-case CSV written by :func:`medseg.evaluation.runner.run_folds`.
 
     Typed (``fold`` an int, the scores and times floats); torn lines are dropped, and a
-    missing file has no rows.
+    missing (or empty) file has no rows.
+
+    Raises
+    ------
+    InputFileError
+        The header lacks some of :data:`COLUMNS`: a file of another version (before the
+        ``perturbation`` column, rows were keyed by angle alone), which cannot be resumed
+        or reported; its rows are not dropped silently.
     """
     path = Path(path)
     if not path.is_file():
         return []
     with path.open(newline="", encoding="utf-8") as fh:
-        rows = [_parse(r) for r in csv.DictReader(fh)]
+        reader = csv.DictReader(fh)
+        missing = [c for c in COLUMNS if c not in (reader.fieldnames or COLUMNS)]
+        if missing:
+            raise InputFileError(
+                f"{path} lacks the column(s) {', '.join(missing)}: it was written by another "
+                "version of medseg-evaluate; choose a new output folder (or move the file "
+                "away) to run again"
+            )
+        rows = [_parse(r) for r in reader]
     return [r for r in rows if r is not None]
 
 
-def result_key(method: str, fold: int, case: str, angle: float) -> tuple:
-    """What identifies a row: method, fold, case and perturbation angle (rounded)."""
-    return (str(method), int(fold), str(case), round(float(angle), 6))
+def result_key(method: str, fold: int, case: str, condition: str) -> tuple:
+    """What identifies a row: method, fold, case and perturbation condition (its name).
+
+    The name, not the angle: ``acquired``, ``pad_zeros`` and ``scale0.8`` all rotate by 0
+    degrees. Within a run (one seed, checked by the runner) a name gives each case one
+    perturbed copy.
+    """
+    return (str(method), int(fold), str(case), str(condition))
 
 
 def _row_key(row: dict) -> tuple:
-    return result_key(row["method"], row["fold"], row["case"], row["perturbation_deg"])
+    return result_key(row["method"], row["fold"], row["case"], row["perturbation"])
 
 
 class ResultsFile:

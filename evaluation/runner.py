@@ -25,6 +25,7 @@ from medseg.errors import MedsegError
 from medseg.evaluation.fold import FoldTask, run_fold
 from medseg.evaluation.folds import check_cohort, fold_seed
 from medseg.evaluation.methods import MethodSpec
+from medseg.evaluation.perturbation import check_conditions
 from medseg.evaluation.results import ResultsFile, result_key
 from medseg.io import atomic_write
 
@@ -85,13 +86,13 @@ def run_folds(
     labels: Sequence[int] = (1,),
     n_landmarks: int | None = None,
     seed: int = 0,
-    perturbation: Sequence[float] = (),
+    perturbation: Sequence[str] = (),
     n_jobs: int = 1,
     scheduler: str | None = None,
     save_predictions: bool = True,
     progress: bool = False,
 ) -> Path:
-    """Run (or resume) the cross-validation; one CSV row per (method, case, perturbation).
+    """Run (or resume) the cross-validation; one CSV row per (method, case, condition).
 
     Parameters
     ----------
@@ -106,9 +107,13 @@ def run_folds(
     n_landmarks : int or None
         Landmarks when they are computed from the label maps (cohorts without landmarks).
     seed : int
-    perturbation : sequence of float
-        Rotation angles (degrees, in ``(0, 45]``) of the pose-perturbation study; each test
-        case is also segmented under a random similarity of each size. Empty: no study.
+    perturbation : sequence of str
+        Named conditions of the pose-perturbation study
+        (:func:`medseg.evaluation.perturbation.parse_condition`: ``random``, ``rot90``,
+        ``scale0.8``, ``pad_zeros``, ...); each test case is also segmented under each, its
+        copy seeded by ``seed``, the case and the condition. The unperturbed case
+        (``acquired``) is always run. Empty: no study. Conditions may be added when
+        resuming; the rows already there are kept.
     n_jobs : int
         Folds run in parallel on this many local processes (joblib); 1 runs serially.
     scheduler : str, optional
@@ -126,9 +131,7 @@ def run_folds(
     csv_path : pathlib.Path
     """
     labels = tuple(int(v) for v in labels)
-    angles = tuple(sorted({0.0} | {float(a) for a in perturbation}))
-    if any(not 0.0 <= a <= 45.0 for a in angles):
-        raise MedsegError(f"perturbation angles must lie in [0, 45] degrees, got {perturbation}")
+    conditions = check_conditions(perturbation)  # ParameterError before any work
     splits = check_cohort(cohort, labels=labels, folds=folds, progress=progress)
     folder = Path(output_dir)
     folder.mkdir(parents=True, exist_ok=True)
@@ -153,8 +156,8 @@ def run_folds(
             k
             for name in names
             for case in test
-            for a in angles
-            if (k := result_key(name, fold, case.case_id, a)) not in results.done
+            for condition in conditions
+            if (k := result_key(name, fold, case.case_id, condition)) not in results.done
         )
         if todo:
             tasks.append(
@@ -167,7 +170,7 @@ def run_folds(
                     specs=tuple(specs),
                     labels=labels,
                     n_landmarks=n_landmarks,
-                    angles=angles,
+                    conditions=conditions,
                     todo=todo,
                     predictions_dir=str(folder / "predictions") if save_predictions else None,
                 )

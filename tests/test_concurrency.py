@@ -6,7 +6,9 @@
   format with a companion data file (``.mhd`` + ``.zraw``), never leave a half-written file or
   a header paired with the other writer's data;
 * ``run_evaluation`` killed (SIGINT or SIGTERM) once rows are on disk resumes without
-  recomputing finished cases and ends with the table of an uninterrupted run.
+  recomputing finished cases and ends with the table of an uninterrupted run (with a
+  perturbation condition of the same angle as the unperturbed case, so that rows are told
+  apart by the condition's name).
 """
 
 from __future__ import annotations
@@ -225,7 +227,9 @@ EVALUATE = textwrap.dedent(
     spec = MethodSpec(
         SlowThreshold, {"delay": 0.15, "log": log}, {"thresh": {}, "shifted": {"offset": 1.0}}
     )
-    run_evaluation(dataset, output, methods=[spec], perturbation=(), seed=5, report=False)
+    run_evaluation(
+        dataset, output, methods=[spec], perturbation=("pad_zeros",), seed=5, report=False
+    )
     """
 )
 
@@ -276,24 +280,32 @@ def _same(a: dict, b: dict, columns) -> bool:
 
 
 def _key(row: dict) -> tuple:
-    return (row["method"], row["fold"], row["case"], row["perturbation_deg"])
+    return (row["method"], row["fold"], row["case"], row["perturbation"])
+
+
+ROWS_PER_FOLD = 4  # one test case x 2 variants x (acquired, pad_zeros)
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
 def test_interrupted_evaluation_resumes_without_recomputing(evaluation_setup, sig):
     root, dataset, script, reference = evaluation_setup
-    assert len(reference) == 12  # 6 folds x 2 variants
+    assert len(reference) == 6 * ROWS_PER_FOLD
+    # two rows per (variant, case), both at 0 degrees and scale 1: the key is the name
+    assert {(r["perturbation"], r["perturbation_deg"], r["scale"]) for r in reference} == {
+        ("acquired", 0.0, 1.0),
+        ("pad_zeros", 0.0, 1.0),
+    }
     out, log = root / f"run-{sig.name}", root / f"{sig.name}.log"
     argv = _python(str(script), str(dataset), str(out), str(log))
     proc = subprocess.Popen(argv, env=_env(), stderr=subprocess.DEVNULL)
     deadline = time.monotonic() + 120
-    while len(read_results(out / "cases.csv")) < 3:  # at least one whole fold and a half
+    while len(read_results(out / "cases.csv")) < 6:  # at least one whole fold and a half
         assert proc.poll() is None and time.monotonic() < deadline, "finished before the kill"
         time.sleep(0.02)
     proc.send_signal(sig)
     assert proc.wait(timeout=60) != 0
     before = {_key(r): r for r in read_results(out / "cases.csv")}
-    assert 3 <= len(before) < 12
+    assert 6 <= len(before) < 6 * ROWS_PER_FOLD
     log.unlink()
 
     resumed = subprocess.run(argv, env=_env(), capture_output=True, text=True, timeout=300)
@@ -304,8 +316,8 @@ def test_interrupted_evaluation_resumes_without_recomputing(evaluation_setup, si
     for key, row in before.items():
         assert _same(row, rows[key], COLUMNS)
     # ... and only the folds with missing rows were fitted again
-    folds_done = {f for (m, f, c, a) in before if (("thresh" if m == "shifted" else "shifted"),
-                                                   f, c, a) in before}  # fmt: skip
+    per_fold = [f for (_, f, _, _) in before]
+    folds_done = {f for f in per_fold if per_fold.count(f) == ROWS_PER_FOLD}
     refits = log.read_text(encoding="utf-8").splitlines()
     assert len(refits) == 6 - len(folds_done)
     # the table equals an uninterrupted run's, timings aside

@@ -1,4 +1,5 @@
-"""Cross-validation engine: folds by subject, bad input, CSV rows, resume, parallel runs.
+"""Cross-validation engine: folds by subject, bad input, CSV rows, resume, parallel runs,
+and the named perturbation conditions shared with the pose-study benchmark.
 
 These tests are about the engine, so they use a tiny fake method (intensity threshold +
 mean training landmarks with a seeded jitter) on a tiny generated cohort of balls.
@@ -16,11 +17,21 @@ import SimpleITK as sitk
 from sklearn.utils import check_random_state
 
 from medseg.datasets import Case, Cohort
-from medseg.errors import CohortError, LabelError, MedsegError, ParameterError
+from medseg.errors import CohortError, InputFileError, LabelError, MedsegError, ParameterError
 from medseg.evaluation.folds import check_cohort, fold_seed, make_folds
 from medseg.evaluation.methods import MethodSpec
-from medseg.evaluation.perturbation import perturb_case, pose_change, random_similarity
-from medseg.evaluation.results import COLUMNS, read_results
+from medseg.evaluation.perturbation import (
+    CONDITIONS,
+    PAD_MM,
+    check_conditions,
+    image_centre,
+    parse_condition,
+    perturb_case,
+    perturb_condition,
+    pose_change,
+    random_similarity,
+)
+from medseg.evaluation.results import COLUMNS, read_results, result_key
 from medseg.evaluation.runner import run_folds
 from medseg.io import voxel_to_physical
 
@@ -120,7 +131,7 @@ def _specs(log=None):
 
 
 def _by_key(rows):
-    return {(r["method"], r["fold"], r["case"], r["perturbation_deg"]): r for r in rows}
+    return {(r["method"], r["fold"], r["case"], r["perturbation"]): r for r in rows}
 
 
 # ----------------------------------------------------------------------------- folds
@@ -170,50 +181,135 @@ def test_bad_input_is_refused_before_any_work(tmp_path):
 # ----------------------------------------------------------------------------- runs
 
 
+STUDY = ("rot30", "scale1.25", "pad_zeros", "random")
+
+
 def test_rows_scores_and_perturbation(tmp_path):
     cohort = tiny_cohort(n_subjects=8, per_subject=1)
-    path = run_folds(cohort, _specs(), tmp_path, folds=4, seed=1, perturbation=(30,))
+    path = run_folds(cohort, _specs(), tmp_path, folds=4, seed=1, perturbation=STUDY)
     with path.open() as fh:
         assert tuple(next(csv.reader(fh))) == COLUMNS
     rows = read_results(path)
-    assert len(rows) == 2 * 8 * 2  # methods x cases x (0, 30 degrees)
+    assert len(rows) == 2 * 8 * 5  # methods x cases x (acquired + 4 conditions)
     by = _by_key(rows)
+    for method in ("thresh", "shifted"):
+        for case in cohort:
+            conditions = {c for (m, _, k, c) in by if m == method and k == case.case_id}
+            assert conditions == {"acquired", *STUDY}
     for r in rows:
-        if r["perturbation_deg"] == 0:
-            # A clean two-level image thresholded in the middle is the label exactly.
+        condition = r["perturbation"]
+        if condition in ("acquired", "pad_zeros"):
+            # A clean two-level image thresholded in the middle is the label exactly, also
+            # in a field of view padded with zeros (the threshold is above 0).
             assert r["dice"] == 1.0 and r["hd95"] == 0.0 and r["assd"] == 0.0
-            assert r["scale"] == 1.0
+            assert r["perturbation_deg"] == 0.0 and r["scale"] == 1.0
+        elif condition == "rot30":
+            assert r["perturbation_deg"] == pytest.approx(30.0) and r["scale"] == 1.0
+            assert 0.9 < r["dice"] < 1.0
+        elif condition == "scale1.25":
+            assert r["perturbation_deg"] == 0.0 and r["scale"] == 1.25
+            assert 0.9 < r["dice"] < 1.0
         else:
-            assert r["dice"] > 0.9
-            assert abs(np.log(r["scale"])) == pytest.approx(np.log(1.25) * 30 / 45)
+            assert 0.0 <= r["perturbation_deg"] <= 45.0 and 0.8 <= r["scale"] <= 1.25
+            assert r["dice"] > 0.85
         assert np.isnan(r["gap"]) and r["seconds"] >= 0
+    # One perturbed copy per (case, condition), shared by the methods; seeded per case.
+    for case in cohort:
+        fold = next(f for (_, f, k, _) in by if k == case.case_id)
+        a, b = by[("thresh", fold, case.case_id, "random")], by[("shifted", fold, case.case_id,
+                                                                   "random")]  # fmt: skip
+        assert (a["perturbation_deg"], a["scale"]) == (b["perturbation_deg"], b["scale"])
+    randoms = {(r["perturbation_deg"], r["scale"]) for r in rows if r["perturbation"] == "random"}
+    assert len(randoms) == 8
     # The shifted variant moves every landmark by (1, 1, 1) mm from the same fit.
-    for (method, fold, case, deg), r in by.items():
-        if method == "thresh" and deg == 0:
+    for (method, fold, case, condition), r in by.items():
+        if method == "thresh" and condition == "acquired":
             case_ = next(c for c in cohort if c.case_id == case)
             assert r["landmark_error_mm"] > 0
-            assert r["landmark_error_mm"] != by[("shifted", fold, case, deg)]["landmark_error_mm"]
+            assert (
+                r["landmark_error_mm"]
+                != by[("shifted", fold, case, condition)]["landmark_error_mm"]
+            )
             assert r["subject"] == case_.subject
+
+
+def test_a_perturbed_copy_depends_on_the_seed_case_and_condition_only(tmp_path):
+    cohort = tiny_cohort(n_subjects=8, per_subject=1)
+    full = _by_key(read_results(run_folds(cohort, _specs(), tmp_path / "a", folds=4, seed=1,
+                                          perturbation=STUDY)))  # fmt: skip
+    # another list of conditions, in another order: the same random copies
+    alone = _by_key(read_results(run_folds(cohort, _specs(), tmp_path / "b", folds=4, seed=1,
+                                           perturbation=("random", "rot30.0"))))  # fmt: skip
+    assert len(alone) == 2 * 8 * 3  # "rot30.0" is "rot30"
+    for key, row in alone.items():
+        for col in ("perturbation_deg", "scale", "dice", "hd95"):
+            assert row[col] == full[key][col]
+    other = _by_key(read_results(run_folds(cohort, _specs(), tmp_path / "c", folds=4, seed=2,
+                                           perturbation=("random",))))  # fmt: skip
+    changed = [k for k in other if k[3] == "random" and other[k]["scale"] != full[k]["scale"]]
+    assert len(changed) == 2 * 8
+
+
+def test_unknown_conditions_and_old_results_files_are_refused(tmp_path, capfd):
+    cohort = tiny_cohort(n_subjects=6, per_subject=1)
+    log = tmp_path / "fits.log"
+    for bad in (("rot200",), ("random", "scale2"), (30.0,), ("flip",)):
+        with pytest.raises(ParameterError, match="unknown perturbation condition"):
+            run_folds(cohort, _specs(str(log)), tmp_path / "a", perturbation=bad)
+    assert not log.exists() and not (tmp_path / "a").exists()
+    # medseg-evaluate: one line, before the dataset is even read
+    from medseg.evaluation.cli import main as evaluate_main
+
+    code = evaluate_main(["no-such-dataset", "-o", str(tmp_path / "b"), "--perturbation",
+                          "random,rot200", "-q"])  # fmt: skip
+    err = capfd.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "'rot200'" in err[0] and "rotN" in err[0]
+    assert not (tmp_path / "b").exists()
+    # a results file of the earlier format (no perturbation column): a clear error, and the
+    # file is left as it was (not rewritten without its rows)
+    old = tmp_path / "old"
+    old.mkdir()
+    header = [c for c in COLUMNS if c != "perturbation"]
+    text = ",".join(header) + "\n" + ",".join(["thresh", "0", "ball_00", "subj0"] + ["0.0"]
+                                               * (len(header) - 4)) + "\n"  # fmt: skip
+    (old / "cases.csv").write_text(text)
+    with pytest.raises(InputFileError, match="lacks the column.*perturbation"):
+        read_results(old / "cases.csv")
+    with pytest.raises(InputFileError, match="another version"):
+        run_folds(cohort, _specs(str(log)), old, folds="loo", seed=3)
+    assert (old / "cases.csv").read_text() == text and not log.exists()
+
+
+def test_result_key_tells_conditions_of_the_same_angle_apart():
+    keys = {result_key("m", 0, "a", c) for c in ("acquired", "pad_zeros", "scale0.8")}
+    assert len(keys) == 3
+    assert result_key("m", 0, "a", "rot90") == result_key("m", np.int64(0), "a", "rot90")
 
 
 def test_resume_recomputes_only_missing_rows(tmp_path):
     cohort = tiny_cohort(n_subjects=6, per_subject=1)
     log = tmp_path / "fits.log"
-    full = run_folds(cohort, _specs(str(log)), tmp_path / "full", folds="loo", seed=3)
+    # two conditions that rotate by 0 degrees, as the unperturbed case does: rows are told
+    # apart by the condition's name
+    study = {"folds": "loo", "seed": 3, "perturbation": ("pad_zeros", "scale0.9")}
+    full = run_folds(cohort, _specs(str(log)), tmp_path / "full", **study)
     reference = _by_key(read_results(full))
+    assert len(reference) == 6 * 2 * 3  # cases x variants x conditions
+    assert {r["perturbation_deg"] for r in reference.values()} == {0.0}
     assert len(log.read_text().splitlines()) == 6
 
-    # An interrupted run: the first 5 rows (folds 0, 1 and half of fold 2) and a torn line.
+    # An interrupted run: the first 15 rows (folds 0, 1 and half of fold 2) and a torn line.
     part = tmp_path / "part"
     part.mkdir()
     (part / "run.json").write_text((tmp_path / "full" / "run.json").read_text())
     lines = full.read_text().splitlines()
-    (part / "cases.csv").write_text("\n".join(lines[:6]) + "\n" + lines[6][:15])
+    (part / "cases.csv").write_text("\n".join(lines[:16]) + "\n" + lines[16][:15])
     log.unlink()
-    run_folds(cohort, _specs(str(log)), part, folds="loo", seed=3)
+    run_folds(cohort, _specs(str(log)), part, **study)
     assert len(log.read_text().splitlines()) == 4  # folds 2..5 refitted, 0 and 1 skipped
     resumed = read_results(part / "cases.csv")
     assert len(resumed) == len(reference)
+    assert sorted(_by_key(resumed)) == sorted(reference)
     for key, row in _by_key(resumed).items():
         for col in COLUMNS:
             if col not in ("seconds", "fit_seconds"):
@@ -222,8 +318,15 @@ def test_resume_recomputes_only_missing_rows(tmp_path):
                 )
     # Nothing left to do: no fit at all.
     log.unlink()
-    run_folds(cohort, _specs(str(log)), part, folds="loo", seed=3)
+    run_folds(cohort, _specs(str(log)), part, **study)
     assert not log.exists()
+    # A condition added on resume: only its rows are computed, the others kept as they were.
+    before = _by_key(read_results(part / "cases.csv"))
+    run_folds(cohort, _specs(str(log)), part, **(study | {"perturbation": ("rot45", "pad_zeros")}))
+    after = _by_key(read_results(part / "cases.csv"))
+    assert len(after) == len(before) + 6 * 2
+    assert all(after[k]["seconds"] == before[k]["seconds"] for k in before)
+    assert {k[3] for k in set(after) - set(before)} == {"rot45"}
     with pytest.raises(MedsegError, match="seed"):
         run_folds(cohort, _specs(str(log)), part, folds="loo", seed=4)
     other_params = (MethodSpec(ThresholdMethod, {"jitter": 0.1}, {"thresh": {}}),)
@@ -253,7 +356,7 @@ def _values(path: Path) -> dict:
 def test_parallel_runs_equal_the_serial_run(tmp_path):
     _register_by_value()
     cohort = tiny_cohort(n_subjects=4, per_subject=2)
-    kwargs = {"folds": 4, "seed": 7, "perturbation": (20,)}
+    kwargs = {"folds": 4, "seed": 7, "perturbation": ("rot20", "random")}
     serial = run_folds(cohort, _specs(), tmp_path / "serial", **kwargs)
     local = run_folds(cohort, _specs(), tmp_path / "joblib", n_jobs=2, **kwargs)
     assert _values(local) == _values(serial)
@@ -267,7 +370,7 @@ def test_parallel_runs_equal_the_serial_run(tmp_path):
             cohort, _specs(), tmp_path / "dask", scheduler=cluster.scheduler_address, **kwargs
         )
     assert _values(dask_csv) == _values(serial)
-    other = run_folds(cohort, _specs(), tmp_path / "other", folds=4, seed=8, perturbation=(20,))
+    other = run_folds(cohort, _specs(), tmp_path / "other", **(kwargs | {"seed": 8}))
     assert _values(other) != _values(serial)
 
 
@@ -361,6 +464,87 @@ def test_pose_change_of_a_given_size():
     with pytest.raises(ParameterError):
         perturb_case(sitk.Image(4, 4, 4, sitk.sitkUInt8), sitk.Image(4, 4, 4, sitk.sitkUInt8),
                      None, change, fill="mirror")  # fmt: skip
+
+
+def test_condition_names_are_parsed_generally_and_canonically():
+    assert [parse_condition(c).name for c in CONDITIONS] == list(CONDITIONS)
+    rot = parse_condition("rot22.50")
+    assert (rot.name, rot.kind, rot.angle_deg, rot.scale) == ("rot22.5", "rotation", 22.5, 1.0)
+    assert parse_condition("rot180").angle_deg == 180 and parse_condition("rot0").name == "rot0"
+    scale = parse_condition("scale.8")
+    assert (scale.name, scale.kind, scale.scale, scale.angle_deg) == ("scale0.8", "scale", 0.8, 0)
+    assert parse_condition("scale1.999").scale == 1.999
+    assert parse_condition("pad_noise").fill == "noise" and parse_condition("random").pad_mm == 15
+    assert parse_condition("acquired").pad_mm == 0
+    for bad in ("rot181", "rot-5", "rot", "rotnan", "scale0.5", "scale2", "scale1e0", "Random",
+                "pad_border", "", 45, None):  # fmt: skip
+        with pytest.raises(ParameterError, match="unknown perturbation condition"):
+            parse_condition(bad)
+    assert check_conditions(()) == ("acquired",)
+    assert check_conditions(["random", "rot90.0", "acquired", "rot90"]) == (
+        "acquired",
+        "random",
+        "rot90",
+    )
+    assert check_conditions("scale1.1") == ("acquired", "scale1.1")
+
+
+def _centred_ball():
+    case = tiny_cohort(n_subjects=1, per_subject=1, seed=5)[0]
+    return case, case.load_image(), case.load_label()
+
+
+def test_rotation_condition_turns_about_the_image_centre_on_the_padded_grid():
+    case, image, label = _centred_ball()
+    moved, moved_label, moved_lm, change, centre = perturb_condition(
+        "rot90", image, label, case.landmarks, random_state=4
+    )
+    assert change.angle_deg == 90.0 and change.scale == 1.0
+    np.testing.assert_allclose(centre, image_centre(image))
+    np.testing.assert_allclose(centre, np.asarray(image.GetOrigin()) + np.array([9.5, 9.5, 14.25]))
+    pad = np.ceil(PAD_MM / np.asarray(image.GetSpacing())).astype(int)
+    assert moved.GetSize() == tuple(int(v) for v in np.asarray(image.GetSize()) + 2 * pad)
+    assert moved_label.GetSize() == moved.GetSize() and moved.GetSpacing() == image.GetSpacing()
+    np.testing.assert_allclose(image_centre(moved), centre, atol=1e-9)  # same centre
+    arr = sitk.GetArrayFromImage(moved)
+    assert arr[0, 0, 0] == 0 and arr.max() == pytest.approx(100.0)  # zeros outside
+    np.testing.assert_allclose(moved_lm, change.apply(case.landmarks, centre))
+    # the ball's label moved with its landmarks (their centroid is the ball's centre)
+    fg = voxel_to_physical(moved_label, np.argwhere(sitk.GetArrayViewFromImage(moved_label)))
+    np.testing.assert_allclose(fg.mean(0), moved_lm.mean(0), atol=0.4)
+    v0 = sitk.GetArrayViewFromImage(label).sum()
+    assert sitk.GetArrayViewFromImage(moved_label).sum() == pytest.approx(v0, rel=0.08)
+    # the same seed, the same copy; another seed, another axis
+    again = perturb_condition("rot90", image, label, case.landmarks, random_state=4)
+    np.testing.assert_array_equal(sitk.GetArrayFromImage(again[0]), arr)
+    other = perturb_condition("rot90", image, label, case.landmarks, random_state=5)
+    assert not np.allclose(other[3].rotation, change.rotation)
+
+
+def test_scale_pad_random_and_acquired_conditions():
+    case, image, label = _centred_ball()
+    v0 = sitk.GetArrayViewFromImage(label).sum()
+    _, scaled, lm, change, centre = perturb_condition("scale0.8", image, label, case.landmarks)
+    assert change.scale == 0.8 and change.angle_deg == 0.0
+    assert sitk.GetArrayViewFromImage(scaled).sum() / v0 == pytest.approx(0.8**3, rel=0.1)
+    np.testing.assert_allclose(lm - centre, 0.8 * (case.landmarks - centre))
+    same = perturb_condition("acquired", image, label, case.landmarks, random_state=0)
+    assert same[0] is image and same[1] is label and same[3].scale == 1.0
+    np.testing.assert_array_equal(same[2], case.landmarks)
+    # noise like the border's (the ball's background, with noise added here)
+    voxels = sitk.GetArrayFromImage(image) + np.random.default_rng(0).normal(0, 2, (SIZE,) * 3)
+    textured = sitk.GetImageFromArray(voxels.astype(np.float32))
+    textured.CopyInformation(image)
+    noisy = [perturb_condition("pad_noise", textured, label, random_state=s)[0] for s in (0, 0, 1)]
+    a, b, c = (sitk.GetArrayFromImage(n) for n in noisy)
+    np.testing.assert_array_equal(a, b)
+    assert not np.array_equal(a, c) and a[0].std() == pytest.approx(2.0, rel=0.2)
+    draws = [perturb_condition("random", image, label, random_state=s)[3] for s in range(40)]
+    angles = np.array([d.angle_deg for d in draws])
+    scales = np.array([d.scale for d in draws])
+    assert angles.min() >= 0 and angles.max() <= 45 and angles.std() > 5
+    assert scales.min() >= 0.8 and scales.max() <= 1.25
+    assert (scales < 1).any() and (scales > 1).any()
 
 
 # ----------------------------------------------------------------------------- references

@@ -11,7 +11,7 @@ import pytest
 from test_crossval import ThresholdMethod, tiny_cohort
 
 from medseg.datasets import Cohort
-from medseg.errors import CohortError, InputFileError, LabelError
+from medseg.errors import CohortError, InputFileError, LabelError, ParameterError
 from medseg.evaluation import run_evaluation
 from medseg.evaluation.methods import MethodSpec
 from medseg.evaluation.report import summarise, write_report
@@ -20,14 +20,16 @@ from medseg.evaluation.results import COLUMNS
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 
-def _row(method, case, dice, lm, *, deg=0.0, hd95=1.0, gap=math.nan):
+def _row(method, case, dice, lm, *, condition="acquired", deg=0.0, scale=1.0, hd95=1.0,
+         gap=math.nan):  # fmt: skip
     return {
         "method": method,
         "fold": 0,
         "case": case,
         "subject": case,
+        "perturbation": condition,
         "perturbation_deg": deg,
-        "scale": 1.0,
+        "scale": scale,
         "dice": dice,
         "hd95": hd95,
         "assd": 0.5,
@@ -53,8 +55,18 @@ ROWS = [
     _row("shape_prior", "b", 0.7, 2.0, gap=0.03),
     _row("asm", "a", 0.6, 3.0, hd95=math.inf),
     _row("asm", "b", 0.8, 5.0),
-    _row("shape_prior", "a", 0.5, 9.0, deg=45.0),
-    _row("asm", "a", 0.1, 20.0, deg=45.0),
+    _row("shape_prior", "a", 0.5, 9.0, condition="rot45", deg=45.0),
+    _row("asm", "a", 0.1, 20.0, condition="rot45", deg=45.0),
+    _row("shape_prior", "a", 0.6, 4.0, condition="rot90", deg=90.0),
+    _row("shape_prior", "a", 0.85, 1.5, condition="scale0.8", scale=0.8),
+    _row("shape_prior", "b", 0.55, 2.5, condition="scale1.25", scale=1.25),
+    # pad_zeros and random rotate by 0 and ~20 degrees: told apart by their names only
+    _row("shape_prior", "a", 0.88, 1.0, condition="pad_zeros"),
+    _row("shape_prior", "b", 0.68, 2.0, condition="pad_zeros"),
+    _row("asm", "b", 0.5, 6.0, condition="pad_zeros"),
+    _row("shape_prior", "a", 0.7, 3.0, condition="random", deg=20.0, scale=1.1),
+    _row("shape_prior", "b", 0.4, 3.0, condition="random", deg=30.0, scale=0.9),
+    _row("asm", "a", 0.2, 9.0, condition="random", deg=20.0, scale=1.1),
 ]
 
 
@@ -69,8 +81,22 @@ def test_summary_statistics_by_hand():
     # inf HD95 is not averaged in, and counted as not finite.
     assert asm["hd95"]["mean"] == pytest.approx(1.0) and asm["hd95"]["n_finite"] == 1
     assert math.isnan(asm["gap"]["mean"])
-    assert s["perturbation"]["asm"]["45"]["dice"] == pytest.approx(0.1)
-    assert s["perturbation"]["shape_prior"]["0"]["landmark_error_mm"] == pytest.approx(1.5)
+    per_sp, per_asm = s["perturbation"]["shape_prior"], s["perturbation"]["asm"]
+    assert set(per_sp) == {"acquired", "rot45", "rot90", "scale0.8", "scale1.25", "pad_zeros",
+                           "random"}  # fmt: skip
+    assert set(per_asm) == {"acquired", "rot45", "pad_zeros", "random"}
+    assert per_asm["rot45"]["dice"] == pytest.approx(0.1)
+    assert per_sp["acquired"]["landmark_error_mm"] == pytest.approx(1.5)
+    assert per_sp["acquired"]["dice_loss"] == 0.0 and per_sp["acquired"]["n"] == 2
+    # The loss is paired by case: (0.9 - 0.7 + 0.7 - 0.4) / 2 for random, ...
+    assert per_sp["random"]["dice_loss"] == pytest.approx(0.25)
+    assert per_sp["random"]["angle_deg"] == pytest.approx(25.0)
+    assert per_sp["random"]["scale"] == pytest.approx(1.0)
+    assert per_sp["pad_zeros"]["dice_loss"] == pytest.approx(0.02)
+    assert per_sp["scale1.25"]["dice_loss"] == pytest.approx(0.15)  # case b only
+    # ... and only over the cases with both rows (asm's pad_zeros: case b)
+    assert per_asm["pad_zeros"]["dice_loss"] == pytest.approx(0.3)
+    assert per_asm["pad_zeros"]["dice"] == pytest.approx(0.5) and per_asm["pad_zeros"]["n"] == 1
 
 
 def test_report_files(tmp_path):
@@ -79,7 +105,27 @@ def test_report_files(tmp_path):
     text = out.read_text(encoding="utf-8")
     assert "| shape_prior | 2 | 0.800 ± 0.100 |" in text
     assert "- `asm`: 2.67 x" in text  # 4.0 / 1.5
-    assert "## Pose perturbation" in text and "| asm | 0.700 / 4.00 | 0.100 / 20.00 |" in text
+    assert "## Pose perturbation" in text
+    lines = text.splitlines()
+    # by rotation angle: 0 (unperturbed), 45, 90
+    rotation = lines.index("| method | 0 deg | 45 deg | 90 deg |")
+    assert lines[rotation + 2 : rotation + 4] == [
+        "| shape_prior | 0.800 | 0.500 | 0.600 |",
+        "| asm | 0.700 | 0.100 | - |",
+    ]
+    # by scale, 1 the unperturbed case
+    scale = lines.index("| method | 0.8 | 1 | 1.25 |")
+    assert lines[scale + 2 : scale + 4] == [
+        "| shape_prior | 0.850 | 0.800 | 0.550 |",
+        "| asm | - | 0.700 | - |",
+    ]
+    # one row per other condition, with the loss against the unperturbed case
+    other = lines.index("| condition | shape_prior | asm |")
+    assert lines[other + 2 : other + 4] == [
+        "| pad_zeros | 0.780 (loss 0.020) | 0.500 (loss 0.300) |",
+        "| random | 0.550 (loss 0.250) | 0.200 (loss 0.400) |",
+    ]
+    assert len(lines) == other + 4  # the last table
 
     raw = (tmp_path / "summary.json").read_text(encoding="utf-8")
     assert "NaN" not in raw and "Infinity" not in raw
@@ -87,6 +133,11 @@ def test_report_files(tmp_path):
     assert raw == json.dumps(data, indent=2, sort_keys=True)
     assert {"metric_per_case", "mean", "foreground_mean"} <= set(data)
     assert len(data["metric_per_case"]) == len(ROWS)
+    assert data["metric_per_case"][-1]["perturbation"] == "random"
+    assert set(data["perturbation"]["asm"]) == {"acquired", "rot45", "pad_zeros", "random"}
+    assert data["perturbation"]["shape_prior"]["random"]["dice_loss"] == pytest.approx(0.25)
+    # the unperturbed table is over the unperturbed rows only (not pad_zeros at 0 degrees)
+    assert data["mean"]["asm"]["dice"] == pytest.approx(0.7)
     assert data["mean"]["asm"]["gap"] is None
     assert data["mean"]["shape_prior"]["dice"] == pytest.approx(0.8)
     assert data["metric_per_case"][2]["hd95"] is None  # inf -> null
@@ -94,6 +145,24 @@ def test_report_files(tmp_path):
         assert (tmp_path / name).read_bytes()[:8] == PNG_MAGIC
     # No cohort: no overlays, no surface view.
     assert not (tmp_path / "overlays.png").exists()
+
+
+def test_report_without_perturbation_has_no_study(tmp_path):
+    _write_csv(tmp_path, [r for r in ROWS if r["perturbation"] == "acquired"])
+    text = write_report(tmp_path).read_text(encoding="utf-8")
+    assert "Pose perturbation" not in text
+    assert not (tmp_path / "perturbation.png").exists()
+    data = json.loads((tmp_path / "summary.json").read_text(encoding="utf-8"))
+    assert set(data["perturbation"]["asm"]) == {"acquired"}
+
+
+def test_report_of_only_other_conditions(tmp_path):
+    rows = [r for r in ROWS if r["perturbation"] in ("acquired", "random")]
+    _write_csv(tmp_path, rows)
+    text = write_report(tmp_path).read_text(encoding="utf-8")
+    assert "by rotation angle" not in text and "by scale" not in text
+    assert "| random | 0.550 (loss 0.250) | 0.200 (loss 0.400) |" in text
+    assert (tmp_path / "perturbation.png").read_bytes()[:8] == PNG_MAGIC
 
 
 def test_report_without_results_is_a_clear_error(tmp_path):
@@ -108,7 +177,11 @@ def _fake_methods():
 def test_run_evaluation_end_to_end(tmp_path):
     cohort = tiny_cohort(n_subjects=6, per_subject=1)
     out = run_evaluation(
-        cohort, tmp_path / "report", methods=_fake_methods(), seed=2, perturbation=(30,)
+        cohort,
+        tmp_path / "report",
+        methods=_fake_methods(),
+        seed=2,
+        perturbation=("rot30", "scale0.9", "pad_noise"),
     )
     names = {p.name for p in out.iterdir()}
     assert {
@@ -129,9 +202,22 @@ def test_run_evaluation_end_to_end(tmp_path):
     data = json.loads((out / "summary.json").read_text(encoding="utf-8"))
     assert data["mean"]["thresh"]["dice"] == pytest.approx(1.0)
     assert np.isfinite(data["mean"]["shifted"]["landmark_error_mm"])
+    conditions = {"acquired", "rot30", "scale0.9", "pad_noise"}
+    assert set(data["perturbation"]["thresh"]) == conditions
+    assert all(v["n"] == len(cohort) for v in data["perturbation"]["thresh"].values())
+    assert data["perturbation"]["thresh"]["rot30"]["angle_deg"] == pytest.approx(30.0)
+    assert 0.0 < data["perturbation"]["thresh"]["rot30"]["dice_loss"] < 0.1
+    rows = list(csv.DictReader((out / "cases.csv").open()))
+    assert len(rows) == 2 * len(cohort) * 4
+    text = (out / "summary.md").read_text(encoding="utf-8")
+    assert "| method | 0 deg | 30 deg |" in text and "| method | 0.9 | 1 |" in text
+    assert "| pad_noise |" in text
 
 
 def test_run_evaluation_refuses_bad_input_before_work(tmp_path):
+    with pytest.raises(ParameterError, match="'rot-1'"):
+        run_evaluation(tiny_cohort(n_subjects=6, per_subject=1), tmp_path / "p",
+                       methods=_fake_methods(), perturbation=("random", "rot-1"))  # fmt: skip
     with pytest.raises(CohortError, match="empty"):
         run_evaluation(Cohort(cases=[]), tmp_path / "a", methods=_fake_methods())
     with pytest.raises(CohortError, match="single subject"):
@@ -145,4 +231,4 @@ def test_run_evaluation_refuses_bad_input_before_work(tmp_path):
             methods=_fake_methods(),
             labels=(3,),
         )
-    assert not any((tmp_path / d).exists() for d in "abc")
+    assert not any((tmp_path / d).exists() for d in "abcp")
