@@ -16,7 +16,7 @@ import medseg
 from medseg.datasets import make_phantom_cohort, write_cohort
 from medseg.errors import CohortError, ModelFileError, NotFittedError
 from medseg.inference.cli import main as segment_main
-from medseg.io import image_geometry, read_image, read_landmarks
+from medseg.io import image_geometry, physical_to_voxel, read_image, read_landmarks
 from medseg.segmenter import ShapePriorSegmenter, load_model
 from medseg.training.cli import main as train_main
 
@@ -91,6 +91,26 @@ def test_inference_after_detection_assumes_no_pose(fitted, cohort):
     np.testing.assert_allclose(b.chosen, change.apply(a.chosen, centre), atol=1e-9)
 
 
+def test_a_pass_in_the_shape_frame_answers_in_the_input_space(fitted, cohort):
+    other = make_phantom_cohort(1, random_state=5, anisotropic=True, oblique=True, **SMALL)
+    image = other[0].load_image()
+    second = copy.copy(fitted).set_params(frame_passes=1)
+    seg = second.segment(image)
+    assert seg.frame_pose is not None and fitted.segment(image).frame_pose is None
+    assert image_geometry(seg.label) == image_geometry(seg.image) == image_geometry(image)
+    # what the pass found in the frame is mapped back: candidates, choice and landmarks
+    np.testing.assert_allclose(
+        seg.candidates.voxels.reshape(-1, 3),
+        physical_to_voxel(image, seg.candidates.positions.reshape(-1, 3)),
+        atol=1e-6,
+    )
+    chosen = seg.candidates.positions[np.arange(len(seg.mrf.x)), np.asarray(seg.mrf.x)]
+    np.testing.assert_allclose(seg.hypotheses[0].chosen, chosen, atol=1e-9)
+    # the frame pose takes the first pass's landmarks onto the reference shape
+    assert seg.frame_pose.scale > 0 and np.linalg.det(seg.frame_pose.rotation) > 0
+    assert "frame" in seg.timings
+
+
 def test_nibabel_in_nibabel_out(fitted, cohort):
     from medseg.io import to_nibabel
 
@@ -139,7 +159,11 @@ def _as_older_version(saved: Path, folder: Path, version: int) -> Path:
     """A copy of a saved model as medseg wrote it before format ``version + 1``."""
     old = Path(shutil.copytree(saved, folder))
     meta = json.loads((old / "model.json").read_text(encoding="utf-8"))
-    dropped = {2: (["shape_model.npz"], ["refine_levels", "n_hypotheses"])}
+    dropped = {3: (["frame.npz"], ["frame_passes"])}
+    dropped[2] = (
+        dropped[3][0] + ["shape_model.npz"],
+        dropped[3][1] + ["refine_levels", "n_hypotheses"],
+    )
     dropped[1] = (
         dropped[2][0] + ["orientation.npz"],
         dropped[2][1] + ["orientation_weight", "orientation_sigma_mm"],
@@ -155,16 +179,21 @@ def _as_older_version(saved: Path, folder: Path, version: int) -> Path:
     return old
 
 
-@pytest.mark.parametrize("version", [1, 2])
+@pytest.mark.parametrize("version", [1, 2, 3])
 def test_older_model_versions_still_load_and_run_without_their_missing_parts(
     fitted, saved, cohort, tmp_path, version
 ):
     loaded = load_model(_as_older_version(saved, tmp_path / "old", version))
-    assert loaded.shape_model_ is None and loaded.refine_levels == 0
+    assert loaded.frame_ is None and not loaded._uses_frame()
+    assert (loaded.shape_model_ is None) == (version < 3) and (loaded.refine_levels == 0) == (
+        version < 3
+    )
     assert (loaded.orientation_ is None) == (version == 1)
     image = cohort[6].load_image()
     same = copy.copy(fitted)  # the same model without the parts that version lacks
-    same.refine_levels = 0
+    same.frame_passes = 0
+    if version < 3:
+        same.refine_levels = 0
     if version == 1:
         same.orientation_weight = 0.0
     np.testing.assert_array_equal(loaded.segment(image).landmarks, same.segment(image).landmarks)
@@ -172,10 +201,10 @@ def test_older_model_versions_still_load_and_run_without_their_missing_parts(
     again = loaded.save(tmp_path / "again")
     meta = json.loads((again / "model.json").read_text(encoding="utf-8"))
     assert meta["format_version"] == version
-    assert load_model(again).shape_model_ is None
+    assert load_model(again).frame_ is None
 
 
-@pytest.mark.parametrize("name", ["orientation.npz", "shape_model.npz"])
+@pytest.mark.parametrize("name", ["orientation.npz", "shape_model.npz", "frame.npz"])
 def test_current_model_without_one_of_its_files_is_incomplete(saved, tmp_path, name):
     broken = Path(shutil.copytree(saved, tmp_path / "broken"))
     (broken / name).unlink()
@@ -215,7 +244,11 @@ def test_refinement_keeps_the_mrf_solution_that_fits_the_image_best(fitted, coho
     assert plain.hypotheses == []
     detection = fitted.segment(image, use_prior=False)  # the baseline is not refined
     np.testing.assert_array_equal(detection.landmarks, detection.chosen)
-    bad_values = {"refine_levels": (-1, 4, 1.5, True), "n_hypotheses": (0, 2.0)}
+    bad_values = {
+        "refine_levels": (-1, 4, 1.5, True),
+        "n_hypotheses": (0, 2.0),
+        "frame_passes": (-1, 1.0, True),
+    }
     for name, bad in [(name, v) for name, values in bad_values.items() for v in values]:
         broken = copy.copy(fitted)
         setattr(broken, name, bad)
@@ -320,6 +353,8 @@ def test_cli_train_on_a_dataset_folder(cohort, tmp_path, capsys):
             "1",
             "--hypotheses",
             "3",
+            "--frame-passes",
+            "2",
             "-q",
         ]
     )
@@ -328,11 +363,17 @@ def test_cli_train_on_a_dataset_folder(cohort, tmp_path, capsys):
     model = medseg.load_model(tmp_path / "m")
     assert model.landmarks_.shape == (6, 12, 3)
     assert (model.orientation_weight, model.refine_levels, model.n_hypotheses) == (0.5, 1, 3)
+    assert model.frame_passes == 2 and model.frame_ is not None
 
 
 @pytest.mark.parametrize(
     ("flag", "value"),
-    [("--refine-levels", "4"), ("--hypotheses", "0"), ("--orientation-weight", "-1")],
+    [
+        ("--refine-levels", "4"),
+        ("--hypotheses", "0"),
+        ("--orientation-weight", "-1"),
+        ("--frame-passes", "-1"),
+    ],
 )
 def test_cli_train_refuses_a_bad_setting_before_reading(flag, value, tmp_path, capsys):
     with pytest.raises(SystemExit) as info:

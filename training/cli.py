@@ -79,6 +79,14 @@ def build_parser() -> argparse.ArgumentParser:
         f"best is kept. Default: {_DEFAULT['n_hypotheses']}.",
     )
     parser.add_argument(
+        "--frame-passes",
+        type=int,
+        choices=range(4),
+        default=_DEFAULT["frame_passes"],
+        help="Passes of the inference in the shape's own frame after the first; 0 is the "
+        f"paper's single pass. Default: {_DEFAULT['frame_passes']}.",
+    )
+    parser.add_argument(
         "--jobs", type=positive_int, default=1, help="Parallel jobs for the forests. Default: 1."
     )
     return parser
@@ -96,6 +104,7 @@ def _run(args: argparse.Namespace) -> int:
         orientation_weight=args.orientation_weight,
         refine_levels=args.refine_levels,
         n_hypotheses=args.hypotheses,
+        frame_passes=args.frame_passes,
         random_state=args.seed,
         n_jobs=args.jobs,
     ).fit(cohort, progress=show_progress(args.quiet))

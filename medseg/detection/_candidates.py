@@ -10,6 +10,7 @@ candidates.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -27,7 +28,7 @@ from medseg.detection._prediction import (
     stride_grid,
 )
 from medseg.errors import ParameterError
-from medseg.io import voxel_to_physical
+from medseg.io import physical_to_voxel, voxel_to_physical
 
 __all__ = ["CandidateSet", "detect_candidates", "non_maximum_suppression", "subvoxel_peak"]
 
@@ -64,6 +65,24 @@ class CandidateSet:
     @property
     def n_candidates(self) -> int:
         return int(self.positions.shape[1])
+
+    def mapped(self, transform: Callable[[np.ndarray], np.ndarray], image) -> CandidateSet:
+        """The same candidates moved by a point ``transform`` (mm -> mm) into ``image``.
+
+        Positions are mapped, voxel indices recomputed in ``image``; probabilities stay.
+        How candidates found in one frame (the shape's, or an unperturbed image) are used
+        in another.
+        """
+        positions = np.asarray(transform(self.positions.reshape(-1, 3)), dtype=float)
+        positions = positions.reshape(self.positions.shape)
+        voxels = physical_to_voxel(image, positions.reshape(-1, 3)).reshape(positions.shape)
+        return CandidateSet(
+            positions=positions,
+            probabilities=self.probabilities,
+            voxels=voxels,
+            floor=self.floor,
+            meta=dict(self.meta),
+        )
 
     def unaries(self, *, eps: float | None = None) -> np.ndarray:
         """Singleton potentials ``U_i(x_i) = -log p(I | x_i)`` of the MRF.

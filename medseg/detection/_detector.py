@@ -81,6 +81,17 @@ class LandmarkDetector(BaseEstimator):
         Extra copies of every training image, scaled about the world origin by these factors
         (only the spacing and origin change, so no resampling): the forests see the anatomy
         at other sizes, as a new subject may be bigger or smaller.
+    augment_poses : int
+        Extra copies of every training image in a random pose: rotated by up to
+        ``augment_angle_deg`` about a random axis, scaled within ``augment_scale_range``,
+        resampled onto the grid padded by ``augment_pad_mm`` with zeros, noise or the border
+        median around it. The features are rotation invariant, but forests trained on crops
+        in one pose learn where the crop's edge and the interpolation-free voxels are; these
+        copies take that away, so the detectors find the landmarks in any pose, size and
+        field of view.
+    augment_angle_deg : float, degrees
+    augment_scale_range : (2,) tuple of float
+    augment_pad_mm : float, mm
     region_radius_mm : float or None, mm
         Cascade: a first forest learns where *any* landmark is within this distance, and
         only the voxels it accepts are scored by the landmark forests (faster, fewer far-away
@@ -146,6 +157,10 @@ class LandmarkDetector(BaseEstimator):
         n_mining_rounds: int = 1,
         n_mining_pool: int = 20000,
         augment_scales: tuple[float, ...] = (),
+        augment_poses: int = 0,
+        augment_angle_deg: float = 180.0,
+        augment_scale_range: tuple[float, float] = (0.8, 1.25),
+        augment_pad_mm: float = 15.0,
         region_radius_mm: float | None = 6.0,
         region_threshold: float = 0.2,
         forest: str = "random_forest",
@@ -169,6 +184,10 @@ class LandmarkDetector(BaseEstimator):
         self.n_mining_rounds = n_mining_rounds
         self.n_mining_pool = n_mining_pool
         self.augment_scales = augment_scales
+        self.augment_poses = augment_poses
+        self.augment_angle_deg = augment_angle_deg
+        self.augment_scale_range = augment_scale_range
+        self.augment_pad_mm = augment_pad_mm
         self.region_radius_mm = region_radius_mm
         self.region_threshold = region_threshold
         self.forest = forest
@@ -205,6 +224,20 @@ class LandmarkDetector(BaseEstimator):
             )
         if int(self.context_folds) < 2:
             raise ParameterError(f"`context_folds` must be at least 2, got {self.context_folds}")
+        if int(self.augment_poses) < 0:
+            raise ParameterError(f"`augment_poses` must be >= 0, got {self.augment_poses}")
+        if not 0.0 <= float(self.augment_angle_deg) <= 180.0:
+            raise ParameterError(
+                f"`augment_angle_deg` must be in [0, 180], got {self.augment_angle_deg}"
+            )
+        low, high = (float(v) for v in self.augment_scale_range)
+        if not 0.0 < low <= high:
+            raise ParameterError(
+                f"`augment_scale_range` must be (low, high) with 0 < low <= high, got "
+                f"{self.augment_scale_range}"
+            )
+        if not float(self.augment_pad_mm) >= 0:
+            raise ParameterError(f"`augment_pad_mm` must be >= 0, got {self.augment_pad_mm}")
 
     def _check_fitted(self) -> None:
         if not hasattr(self, "forests_"):

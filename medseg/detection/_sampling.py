@@ -107,6 +107,10 @@ def sample_landmark_voxels(
         else:
             hoods.append((np.empty(0, dtype=np.int64), np.empty(0)))
 
+    # How many neighbourhoods hold each voxel: the union of the others' is where it is > own.
+    cover = np.zeros(n_vox, dtype=np.int32)
+    for flat, _ in hoods:
+        np.add.at(cover, flat, 1)
     positives, negatives, pos_dist = [], [], []
     n_ring = n_negative // 3
     n_other = n_negative // 3
@@ -133,9 +137,10 @@ def sample_landmark_voxels(
         ring = flat[~is_pos]
         ring = rng.choice(ring, min(n_ring, ring.size), replace=False) if ring.size else ring
 
-        others = [hoods[j][0] for j in range(n_lm) if j != i and hoods[j][0].size]
-        if others:
-            pool = np.unique(np.concatenate(others))
+        own = np.zeros(n_vox, dtype=np.int32)
+        own[flat] = 1
+        pool = np.flatnonzero(cover - own > 0)  # in another landmark's neighbourhood, sorted
+        if pool.size:
             pool_zyx = np.stack(np.unravel_index(pool, shape), axis=-1)
             far = np.linalg.norm(voxel_to_physical(image, pool_zyx) - landmarks[i], axis=1) > r_pos
             pool = pool[far]

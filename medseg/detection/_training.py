@@ -1,7 +1,8 @@
 """Training a landmark detector: samples, forests, hard negatives, the cascade, auto-context.
 
 :func:`fit_detector` is what :meth:`LandmarkDetector.fit` runs once the parameters are
-checked. Per training image (and per scaled copy, ``augment_scales``) it computes the
+checked. Per training image (and per scaled or posed copy, ``augment_scales``,
+``augment_poses``) it computes the
 features and draws each landmark's positives and negatives (:mod:`._sampling`) plus a pool
 of random voxels; fits the cascade's region forest on the pools, then the landmark forests;
 and, per round of hard-negative mining, adds the pool voxels those forests score highest
@@ -19,6 +20,7 @@ from collections.abc import Sequence
 
 import numpy as np
 import SimpleITK as sitk
+from scipy.spatial.transform import Rotation
 from sklearn.ensemble import ExtraTreesClassifier, RandomForestClassifier
 from sklearn.utils import check_random_state
 from tqdm.auto import tqdm
@@ -33,7 +35,7 @@ from medseg.detection._prediction import (
 )
 from medseg.detection._sampling import sample_landmark_voxels
 from medseg.errors import CohortError, ImageGeometryError, LandmarkFileError
-from medseg.io import voxel_to_physical
+from medseg.io import FILLS, padded_grid, resample_affine, voxel_to_physical
 from medseg.progress import show_progress
 
 __all__ = ["check_training_data", "fit_detector"]
@@ -98,6 +100,31 @@ def _scaled(image: sitk.Image, pts: np.ndarray, factor: float):
     return out, pts * factor
 
 
+def _posed(image: sitk.Image, pts: np.ndarray, detector, rng):
+    """A copy of the image and landmarks in a random pose, scale and field of view.
+
+    A rotation by an angle uniform in ``[0, augment_angle_deg]`` about a uniformly random
+    axis and a scale log-uniform in ``augment_scale_range``, about the landmarks' centroid;
+    resampled linearly onto the image's grid padded by ``augment_pad_mm``, filled with
+    zeros, noise like the image's border, or its border median (one at random). The forests
+    then see the anatomy in poses, sizes, interpolations and surroundings the training crops
+    never show, and cannot learn where the crop's edge lies relative to the anatomy.
+    """
+    axis = rng.standard_normal(3)
+    axis /= np.linalg.norm(axis)
+    angle = np.deg2rad(rng.uniform(0.0, float(detector.augment_angle_deg)))
+    low, high = (float(v) for v in detector.augment_scale_range)
+    scale = float(np.exp(rng.uniform(np.log(low), np.log(high))))
+    rotation = Rotation.from_rotvec(angle * axis).as_matrix()
+    centre = pts[np.isfinite(pts).all(axis=1)].mean(axis=0)
+    matrix = scale * rotation
+    offset = centre - matrix @ centre
+    fill = FILLS[int(rng.randint(len(FILLS)))]
+    grid = padded_grid(image, float(detector.augment_pad_mm))
+    moved = resample_affine(image, matrix, offset, grid, fill=fill, random_state=rng)
+    return moved, pts @ matrix.T + offset
+
+
 # ------------------------------------------------------------------------------ auto-context
 def _fit_stage1(detector, images, landmarks, rng):
     """Fit the auto-context's first stage; return the training images' feature function.
@@ -147,18 +174,22 @@ def _fit_stage(detector, images, landmarks, n_lm, features_of, rng) -> None:
     use_region = detector.region_radius_mm is not None
     n_rounds = int(detector.n_mining_rounds)
     n_pool = int(detector.n_mining_pool) if (n_rounds > 0 or use_region) else 0
-    scales = (1.0,) + tuple(float(v) for v in detector.augment_scales)
+    copies = [("scale", 1.0)] + [("scale", float(v)) for v in detector.augment_scales]
+    copies += [("pose", None)] * int(detector.augment_poses)
     # Every pool voxel is scored by every landmark's forest when mining: with many images
     # (hippocampus, 48 cases x 20000 voxels x 66 forests) that dominated the training.
-    n_pool = min(n_pool, _MAX_POOL_TOTAL // max(1, len(images) * len(scales)))
+    n_pool = min(n_pool, _MAX_POOL_TOTAL // max(1, len(images) * len(copies)))
     progress = detector.verbose and show_progress()
     jobs = [
-        (k, image, pts, s)
+        (k, image, pts, copy)
         for k, (image, pts) in enumerate(zip(images, landmarks, strict=True))
-        for s in scales
+        for copy in copies
     ]
-    for k, image, pts, factor in tqdm(jobs, desc="features", disable=not progress):
-        image, pts = _scaled(image, pts, factor)
+    for k, image, pts, (kind, factor) in tqdm(jobs, desc="features", disable=not progress):
+        if kind == "scale":
+            image, pts = _scaled(image, pts, factor)
+        else:
+            image, pts = _posed(image, pts, detector, rng)
         check_feature_memory(image, image.GetSize()[::-1], detector.features)
         feats = features_of(k, image)
         flat = feats.reshape(-1, feats.shape[-1])

@@ -41,9 +41,16 @@ from medseg.io._checks import check_image, check_same_geometry
 from medseg.io._coordinates import image_geometry, physical_to_voxel, voxel_to_physical
 from medseg.io._dicom import write_dicom_series
 from medseg.io._images import IMAGE_SUFFIXES, image_suffix, read_image, write_image
-from medseg.io._labels import read_label, resample_like, select_labels
+from medseg.io._labels import read_label, select_labels
 from medseg.io._landmarks import LANDMARK_SUFFIXES, read_landmarks, write_landmarks
 from medseg.io._nibabel import as_input_type, to_nibabel
+from medseg.io._resample import (
+    FILLS,
+    border_values,
+    padded_grid,
+    resample_affine,
+    resample_like,
+)
 
 __all__ = [
     "voxel_to_physical",
@@ -56,6 +63,10 @@ __all__ = [
     "read_label",
     "select_labels",
     "resample_like",
+    "border_values",
+    "resample_affine",
+    "padded_grid",
+    "FILLS",
     "check_image",
     "check_same_geometry",
     "to_nibabel",

@@ -1,4 +1,4 @@
-"""Label maps: read and check against their image, select labels, resample onto a grid."""
+"""Label maps: read and check against their image, select labels."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from medseg.errors import LabelError
 from medseg.io._checks import INTEGER_PIXELS, check_same_geometry, describe
 from medseg.io._images import read_image
 
-__all__ = ["read_label", "select_labels", "resample_like"]
+__all__ = ["read_label", "select_labels"]
 
 
 def read_label(source: Any, reference: Any = None, *, name: str | None = None) -> sitk.Image:
@@ -133,41 +133,3 @@ def select_labels(
     out = sitk.GetImageFromArray(mask.astype(np.uint8))
     out.CopyInformation(label_image)
     return out
-
-
-def resample_like(
-    image: sitk.Image,
-    reference: sitk.Image,
-    *,
-    is_label: bool,
-    transform: sitk.Transform | None = None,
-    default_value: float = 0.0,
-) -> sitk.Image:
-    """Resample ``image`` onto the voxel grid of ``reference``.
-
-    Parameters
-    ----------
-    image : SimpleITK.Image
-    reference : SimpleITK.Image
-        Supplies the output size, spacing, origin and direction.
-    is_label : bool
-        Nearest-neighbour interpolation (no invented label values) if True, linear if False.
-    transform : SimpleITK.Transform, optional
-        Maps points of ``reference``'s space into ``image``'s space; identity by default.
-    default_value : float
-        Value outside ``image``.
-
-    Returns
-    -------
-    resampled : SimpleITK.Image
-        ``image``'s pixel type, ``reference``'s geometry exactly.
-    """
-    interpolator = sitk.sitkNearestNeighbor if is_label else sitk.sitkLinear
-    return sitk.Resample(
-        image,
-        reference,
-        transform if transform is not None else sitk.Transform(),
-        interpolator,
-        float(default_value),
-        image.GetPixelID(),
-    )

@@ -26,14 +26,16 @@ from medseg.correspondence import cohort_landmarks, label_surface, landmarks_fro
 from medseg.datasets import Cohort
 from medseg.detection import CandidateSet, LandmarkDetector, gradient_directions
 from medseg.errors import CohortError, NotFittedError, ParameterError
+from medseg.frame import ShapeFrame
 from medseg.geometry import procrustes_disparity
 from medseg.io import as_input_type, read_image, select_labels
 from medseg.memory import memory_limit_bytes
 from medseg.mrf import DEFAULT_MAX_BYTES, MRF, solve
 from medseg.reconstruction import warp_mask, warp_surface
 from medseg.segmenter import _memory, _persistence
+from medseg.segmenter._frame_pass import in_frame_passes
 from medseg.segmenter._hypotheses import check_not_collapsed, margin, refined_hypotheses
-from medseg.segmenter._result import Hypothesis, Segmentation
+from medseg.segmenter._result import Hypothesis, Located, Segmentation
 from medseg.shape import ActiveShapeModel, OrientationPrior, TripletPrior
 
 __all__ = ["ShapePriorSegmenter", "load_model", "MIN_TRAINING_CASES"]
@@ -89,6 +91,13 @@ class ShapePriorSegmenter(BaseEstimator):
         only. On the phantom (5-fold) the mean landmark error was 8.3, 6.6, 5.6, 5.0 and
         5.4 mm with 1 to 5; on hippocampus the Dice did not change; each costs one MRF
         solve and one search (4 take 1.6 times the CPU time of 2).
+    frame_passes : int, default 0
+        Passes of the whole inference (detection, MRF, refinement) in the shape's own frame
+        (:class:`medseg.frame.ShapeFrame`) after the first one in the image as given: the
+        image resampled so that the landmarks found last sit on the reference shape,
+        upright, at its mean size, in a training-like field of view. The frame comes from
+        the pose-free solution, so the result stays pose free while the detectors and the
+        search see the structure as in training. 0 is the paper's single pass.
     landmark_noise_mm : float, default 1.5
         Standard deviation of the localisation noise of detected landmarks. The clique
         densities are fitted to training shapes jittered by this much (``n_noise_copies``
@@ -127,6 +136,9 @@ class ShapePriorSegmenter(BaseEstimator):
     prior_ : TripletPrior
     orientation_ : OrientationPrior or None
         None for a model saved before the handedness term existed (format version 1).
+    frame_ : ShapeFrame or None
+        The shape's frame, fitted on ``landmarks_`` and the training images; None for a
+        model saved before it existed (format versions 1-3), which then runs one pass.
     shape_model_ : ActiveShapeModel or None
         The refining active shape model, fitted on ``landmarks_``; None for a model saved
         before it existed (format versions 1 and 2).
@@ -150,6 +162,7 @@ class ShapePriorSegmenter(BaseEstimator):
         orientation_sigma_mm: float = 1.0,
         refine_levels: int = 2,
         n_hypotheses: int = 4,
+        frame_passes: int = 0,
         landmark_noise_mm: float = 1.5,
         n_noise_copies: int = 10,
         n_estimators: int = 60,
@@ -171,6 +184,7 @@ class ShapePriorSegmenter(BaseEstimator):
         self.orientation_sigma_mm = orientation_sigma_mm
         self.refine_levels = refine_levels
         self.n_hypotheses = n_hypotheses
+        self.frame_passes = frame_passes
         self.landmark_noise_mm = landmark_noise_mm
         self.n_noise_copies = n_noise_copies
         self.n_estimators = n_estimators
@@ -295,6 +309,7 @@ class ShapePriorSegmenter(BaseEstimator):
             self.landmarks_, kept_images
         )
         timings["shape_model"] = time.perf_counter() - t0
+        self.frame_ = ShapeFrame.fit(self.landmarks_, kept_images)
         self.fit_timings_ = timings
         return self
 
@@ -313,11 +328,49 @@ class ShapePriorSegmenter(BaseEstimator):
             baseline); True minimises the higher-order MRF.
         candidates : CandidateSet, optional
             Candidates already detected in this image (``Segmentation.candidates`` of an
-            earlier call), so that variants of the inference do not detect twice.
+            earlier call, or of the first pass with ``frame_passes``), so that variants of
+            the inference do not detect twice.
         """
         self._check_is_fitted()
+        self._check_refinement()
         source = image
         image = read_image(image)
+        found = self._locate(image, use_prior=use_prior, candidates=candidates)
+        if use_prior and self._uses_frame():
+            found = in_frame_passes(
+                self, image, found, n_passes=int(self.frame_passes), locate=self._locate
+            )
+        t0 = time.perf_counter()
+        label = warp_mask(
+            self.template_mask_,
+            self.template_landmarks_,
+            found.landmarks,
+            image,
+            smoothing=self.smoothing,
+        )
+        vertices, faces = self.template_surface_
+        surface = warp_surface(
+            vertices, faces, self.template_landmarks_, found.landmarks, smoothing=self.smoothing
+        )
+        found.timings["reconstruction"] = time.perf_counter() - t0
+        return Segmentation(
+            label=as_input_type(label, like=source),
+            landmarks=found.landmarks,
+            surface=surface,
+            candidates=found.candidates,
+            mrf=found.mrf,
+            confidence=found.confidence,
+            timings=found.timings,
+            chosen=found.chosen,
+            hypotheses=found.hypotheses,
+            image=image,
+            frame_pose=found.frame_pose,
+        )
+
+    def _locate(
+        self, image, *, use_prior: bool = True, candidates: CandidateSet | None = None
+    ) -> Located:
+        """The landmarks in ``image`` (a SimpleITK image): detection, MRF, refinement."""
         limit = _memory.configured_limit(self.memory_limit_gb)
         if candidates is None:
             _memory.check_detection_memory(image, self.detector_, limit)
@@ -370,7 +423,6 @@ class ShapePriorSegmenter(BaseEstimator):
         chosen = landmarks
         hypotheses: list[Hypothesis] = []
         if use_prior and self.refine_levels and self.shape_model_ is not None:
-            self._check_refinement()
             check_not_collapsed(chosen)
             t0 = time.perf_counter()
             hypotheses = refined_hypotheses(
@@ -392,31 +444,14 @@ class ShapePriorSegmenter(BaseEstimator):
             best = min(hypotheses, key=lambda h: h.profile_cost)
             chosen, landmarks = best.chosen, best.landmarks
             timings["refinement"] = time.perf_counter() - t0
-
-        t0 = time.perf_counter()
-        label = warp_mask(
-            self.template_mask_,
-            self.template_landmarks_,
-            landmarks,
-            image,
-            smoothing=self.smoothing,
-        )
-        vertices, faces = self.template_surface_
-        surface = warp_surface(
-            vertices, faces, self.template_landmarks_, landmarks, smoothing=self.smoothing
-        )
-        timings["reconstruction"] = time.perf_counter() - t0
-        return Segmentation(
-            label=as_input_type(label, like=source),
-            landmarks=landmarks,
-            surface=surface,
+        return Located(
             candidates=cands,
             mrf=result,
             confidence=confidence,
-            timings=timings,
             chosen=chosen,
+            landmarks=landmarks,
             hypotheses=hypotheses,
-            image=image,
+            timings=timings,
         )
 
     # -- persistence ------------------------------------------------------------------------
@@ -450,6 +485,13 @@ class ShapePriorSegmenter(BaseEstimator):
         n = self.n_hypotheses
         if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
             raise ParameterError(f"`n_hypotheses` must be an integer >= 1; got {n!r}")
+        p = self.frame_passes
+        if isinstance(p, bool) or not isinstance(p, (int, np.integer)) or p < 0:
+            raise ParameterError(f"`frame_passes` must be an integer >= 0; got {p!r}")
+
+    def _uses_frame(self) -> bool:
+        """Whether segment runs passes in the shape's frame (a model without one cannot)."""
+        return bool(self.frame_passes) and getattr(self, "frame_", None) is not None
 
     def _check_is_fitted(self) -> None:
         if not hasattr(self, "detector_"):

@@ -10,6 +10,7 @@ Layout of a model folder::
     orientation.npz   written by OrientationPrior.save; since version 2
     shape_model.npz   written by ActiveShapeModel.save (the model refining the landmarks);
                       since version 3
+    frame.npz         written by ShapeFrame.save (the shape's own frame); since version 4
 
 The folder is built in a staging sibling and swapped into place (``atomic_folder``), so a
 failed save leaves no half-written model. Loading verifies the format version and every checksum
@@ -36,17 +37,26 @@ import SimpleITK as sitk
 from medseg._version import __version__
 from medseg.detection import LandmarkDetector
 from medseg.errors import InputFileError, ModelFileError
+from medseg.frame import ShapeFrame
 from medseg.io import atomic_folder, check_format, load_arrays, save_arrays
 from medseg.io._archive import MAX_UNPACKED_BYTES, check_archive
 from medseg.shape import ActiveShapeModel, OrientationPrior, TripletPrior
 
 FORMAT = "medseg-shape-prior-segmenter"
-FORMAT_VERSION = 3
+FORMAT_VERSION = 4
 #: versions this medseg reads: 1 lacks the handedness term (``orientation.npz``), 1 and 2
-#: the landmark refinement (``shape_model.npz`` and the ``refine_levels`` parameter)
-_READABLE_VERSIONS = (1, 2, 3)
+#: the landmark refinement (``shape_model.npz`` and the ``refine_levels`` parameter), 1-3
+#: the shape's frame (``frame.npz``, ``frame_passes``)
+_READABLE_VERSIONS = (1, 2, 3, 4)
 #: format version that introduced an optional file or parameter
-_SINCE = {"orientation.npz": 2, "shape_model.npz": 3, "refine_levels": 3, "n_hypotheses": 3}
+_SINCE = {
+    "orientation.npz": 2,
+    "shape_model.npz": 3,
+    "refine_levels": 3,
+    "n_hypotheses": 3,
+    "frame.npz": 4,
+    "frame_passes": 4,
+}
 _PARAMS = (
     "n_landmarks",
     "labels",
@@ -59,6 +69,7 @@ _PARAMS = (
     "orientation_sigma_mm",
     "refine_levels",
     "n_hypotheses",
+    "frame_passes",
     "landmark_noise_mm",
     "n_noise_copies",
     "n_estimators",
@@ -69,7 +80,8 @@ _PARAMS = (
 )
 MAX_MODEL_BYTES = 2 * 1024**3
 _ARCHIVES = (
-    "template.npz", "prior.npz", "orientation.npz", "shape_model.npz", "detector/forests.skops",
+    "template.npz", "prior.npz", "orientation.npz", "shape_model.npz", "frame.npz",
+    "detector/forests.skops",
 )  # fmt: skip
 _TEMPLATE_HEADER_CHECK = {"format": "medseg.segmenter.template", "version": 1}
 _TEMPLATE_HEADER = {"format": "medseg.segmenter.template", "format_version": 1}
@@ -119,6 +131,9 @@ def save_model(model, path: Path) -> Path:
             if model.shape_model_ is not None:
                 model.shape_model_.save(tmp / "shape_model.npz")
                 version = 3
+                if getattr(model, "frame_", None) is not None:
+                    model.frame_.save(tmp / "frame.npz")
+                    version = 4
         meta = {
             "format": FORMAT,
             "format_version": version,
@@ -196,6 +211,9 @@ def load_model(cls, path: Path):
     ):
         raise ModelFileError(f"{path / 'orientation.npz'} does not match the cliques of prior.npz")
     model.shape_model_ = _load_part(path, "shape_model.npz", version, ActiveShapeModel)
+    model.frame_ = _load_part(path, "frame.npz", version, ShapeFrame)
+    if model.frame_ is not None and model.frame_.reference.shape != np.shape(model.landmarks_)[1:]:
+        raise ModelFileError(f"{path / 'frame.npz'} does not match the landmarks of template.npz")
     if model.shape_model_ is not None and (
         model.shape_model_.mean_shape_.shape != np.shape(model.landmarks_)[1:]
     ):

@@ -9,9 +9,10 @@ import numpy as np
 import SimpleITK as sitk
 
 from medseg.detection import CandidateSet
+from medseg.geometry import Similarity
 from medseg.mrf import SolveResult
 
-__all__ = ["Hypothesis", "Segmentation"]
+__all__ = ["Hypothesis", "Segmentation", "Located"]
 
 
 @dataclass(frozen=True)
@@ -68,6 +69,11 @@ class Segmentation:
         With refinement: the MRF solutions that were refined, the first being the MRF's
         optimum (``mrf``); ``landmarks`` come from the one with the lowest profile cost.
         Empty without refinement.
+    frame_pose : Similarity or None
+        With ``frame_passes``: the similarity from the input's physical space (mm) into the
+        shape's frame in which the last pass ran (the result's landmarks, candidates and
+        hypotheses are mapped back into the input's space). None when no pass ran in the
+        frame.
     """
 
     label: Any
@@ -80,6 +86,7 @@ class Segmentation:
     chosen: np.ndarray | None = None
     hypotheses: list = field(default_factory=list)
     image: sitk.Image | None = field(default=None, repr=False)
+    frame_pose: Similarity | None = None
 
     def plot(self, *, axis: int = 0, index: int | None = None):
         """Image, label and overlay of one slice with the nearby landmarks (a matplotlib
@@ -98,3 +105,21 @@ class Segmentation:
             self.landmarks, color="red", point_size=10, render_points_as_spheres=True
         )
         return plotter.show()
+
+
+@dataclass
+class Located:
+    """What one pass of detection, MRF and refinement found in one image (internal).
+
+    The fields of :class:`Segmentation` before the reconstruction, in the physical space
+    of the image the pass ran on.
+    """
+
+    candidates: CandidateSet
+    mrf: SolveResult | None
+    confidence: np.ndarray
+    chosen: np.ndarray
+    landmarks: np.ndarray
+    hypotheses: list
+    timings: dict
+    frame_pose: Similarity | None = None

@@ -1,0 +1,153 @@
+"""Resampling: onto another grid, under a similarity, into a larger field of view.
+
+The one place images change grid: :func:`resample_like` (onto a reference's grid, nearest
+neighbour for labels so no label value is invented), :func:`resample_affine` (moved by an
+affine map of physical space, onto a grid of choice, with what lies beyond the original
+field of view filled by a constant, zeros, or noise like the image's border), and
+:func:`padded_grid` (a grid extended by a margin). Pose perturbations, the shape's frame and
+training-time pose augmentation are all built on these.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import SimpleITK as sitk
+from numpy.typing import ArrayLike
+from sklearn.utils import check_random_state
+
+from medseg.errors import ParameterError
+
+__all__ = ["resample_like", "resample_affine", "padded_grid", "border_values", "FILLS"]
+
+#: What fills the voxels of a resampled image that lie outside the original: the median of
+#: its border voxels, zeros (a scanner's empty field of view), or Gaussian noise with the
+#: mean and standard deviation of its border voxels (tissue-like background).
+FILLS = ("border", "zeros", "noise")
+
+
+def resample_like(
+    image: sitk.Image,
+    reference: sitk.Image,
+    *,
+    is_label: bool,
+    transform: sitk.Transform | None = None,
+    default_value: float = 0.0,
+) -> sitk.Image:
+    """Resample ``image`` onto the voxel grid of ``reference``.
+
+    Parameters
+    ----------
+    image : SimpleITK.Image
+    reference : SimpleITK.Image
+        Supplies the output size, spacing, origin and direction.
+    is_label : bool
+        Nearest-neighbour interpolation (no invented label values) if True, linear if False.
+    transform : SimpleITK.Transform, optional
+        Maps points of ``reference``'s space into ``image``'s space; identity by default.
+    default_value : float
+        Value outside ``image``.
+
+    Returns
+    -------
+    resampled : SimpleITK.Image
+        ``image``'s pixel type, ``reference``'s geometry exactly.
+    """
+    interpolator = sitk.sitkNearestNeighbor if is_label else sitk.sitkLinear
+    return sitk.Resample(
+        image,
+        reference,
+        transform if transform is not None else sitk.Transform(),
+        interpolator,
+        float(default_value),
+        image.GetPixelID(),
+    )
+
+
+def border_values(image: sitk.Image) -> np.ndarray:
+    """The voxels on the six faces of an image's grid, as a flat float array.
+
+    What surrounds the field of view: the fill for resampling beyond it (their median) or
+    for simulating a larger one (noise with their mean and spread).
+    """
+    a = sitk.GetArrayViewFromImage(image)
+    faces = [a[0], a[-1], a[:, 0], a[:, -1], a[:, :, 0], a[:, :, -1]]
+    return np.concatenate([f.ravel() for f in faces]).astype(float)
+
+
+def padded_grid(image: sitk.Image, margin_mm: float) -> sitk.Image:
+    """An empty image on ``image``'s grid extended by ``margin_mm`` on every side.
+
+    Same spacing and direction; the margin is rounded up to whole voxels per axis, so the
+    original voxels stay on the new grid.
+    """
+    if not margin_mm >= 0:
+        raise ParameterError(f"`margin_mm` must be >= 0, got {margin_mm}")
+    spacing = np.asarray(image.GetSpacing(), dtype=float)
+    pad = np.ceil(float(margin_mm) / spacing - 1e-9).astype(int)
+    size = np.asarray(image.GetSize()) + 2 * pad
+    grid = sitk.Image([int(v) for v in size], sitk.sitkUInt8)
+    grid.SetSpacing(image.GetSpacing())
+    grid.SetDirection(image.GetDirection())
+    grid.SetOrigin(image.TransformContinuousIndexToPhysicalPoint([-float(p) for p in pad]))
+    return grid
+
+
+def resample_affine(
+    image: sitk.Image,
+    matrix: ArrayLike,
+    offset: ArrayLike,
+    grid: sitk.Image,
+    *,
+    is_label: bool = False,
+    fill: str = "border",
+    random_state=None,
+) -> sitk.Image:
+    """``image`` moved by the map ``y = matrix @ x + offset`` (physical mm), on ``grid``.
+
+    Parameters
+    ----------
+    image : 3D SimpleITK image
+    matrix : (3, 3) float array
+        Invertible (a similarity: ``scale * rotation``).
+    offset : (3,) float array, mm
+    grid : 3D SimpleITK image
+        The output's size, spacing, origin and direction.
+    is_label : bool, default False
+        Nearest neighbour (outside: 0) instead of linear interpolation.
+    fill : {"border", "zeros", "noise"}, default "border"
+        What fills the output voxels whose preimage lies outside ``image`` (:data:`FILLS`);
+        ignored for labels.
+    random_state : int, RandomState or None
+        Seeds the noise fill.
+
+    Returns
+    -------
+    SimpleITK image
+        float32 for an image (the input's type when the fill is a constant), the input's
+        type for a label map.
+    """
+    if fill not in FILLS:
+        raise ParameterError(f"`fill` must be one of {FILLS}, got {fill!r}")
+    matrix = np.asarray(matrix, dtype=float)
+    offset = np.asarray(offset, dtype=float)
+    inverse = np.linalg.inv(matrix)
+    transform = sitk.AffineTransform(3)  # resampling pulls output points back: the inverse
+    transform.SetMatrix(inverse.ravel().tolist())
+    transform.SetTranslation((-(inverse @ offset)).tolist())
+    if is_label:
+        return resample_like(image, grid, is_label=True, transform=transform)
+    border = border_values(image)
+    constant = 0.0 if fill == "zeros" else float(np.median(border))
+    moved = resample_like(image, grid, is_label=False, transform=transform, default_value=constant)
+    if fill != "noise":
+        return moved
+    ones = sitk.Image(image.GetSize(), sitk.sitkUInt8) + 1
+    ones.CopyInformation(image)
+    outside = sitk.GetArrayFromImage(resample_like(ones, grid, is_label=True, transform=transform))
+    outside = outside == 0
+    values = sitk.GetArrayFromImage(sitk.Cast(moved, sitk.sitkFloat32))
+    rng = check_random_state(random_state)
+    values[outside] = rng.normal(border.mean(), border.std(), size=int(outside.sum()))
+    noisy = sitk.GetImageFromArray(values)
+    noisy.CopyInformation(grid)
+    return noisy
