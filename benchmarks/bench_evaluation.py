@@ -31,7 +31,9 @@ def main() -> None:
     parser.add_argument("--folds", default="5", help="'loo' or k. Default: 5.")
     parser.add_argument("--labels", nargs="+", type=int, default=[1])
     parser.add_argument("--n-jobs", nargs="+", type=int, default=[1, 2])
-    parser.add_argument("--perturbation", nargs="*", default=[], help="condition names, e.g. rot90 random")
+    parser.add_argument(
+        "--perturbation", nargs="*", default=[], help="condition names, e.g. rot90 random"
+    )
     parser.add_argument("--max-subjects", type=int, default=None)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument(
