@@ -34,7 +34,8 @@ stages swapped for their reference (``--variants``):
   (the detectors taken out of the question);
 * ``no_refine``: the MRF's landmarks, without the active-shape refinement;
 * ``no_handedness``: the prior without the handedness term;
-* ``scale_free``: the paper's prior (``invariant="distance"``) instead of the size-aware one.
+* ``scale_free``: the paper's prior (``invariant="distance"``) instead of the size-aware one;
+* ``frame1``: one more pass in the shape's frame (``frame_passes=1``).
 
 One JSON line per (case, condition, variant): Dice and HD95 of the union, landmark
 disagreement with the acquired run (mm, mapped through the transform), seconds. The summary
@@ -67,7 +68,7 @@ from medseg.segmenter import ShapePriorSegmenter, load_model
 from medseg.shape import OrientationPrior, TripletPrior
 
 LABELS = (1, 2)
-VARIANTS = ("default", "carried", "no_refine", "no_handedness", "scale_free")
+VARIANTS = ("default", "carried", "no_refine", "no_handedness", "scale_free", "frame1")
 
 
 def _default_data() -> Path:
@@ -135,6 +136,15 @@ def _order(condition: str) -> tuple:
     return (known.index(condition), "") if condition in known else (len(known), condition)
 
 
+def _param(text: str) -> tuple[str, object]:
+    """``NAME=VALUE`` of a model parameter; the value read as JSON when it parses."""
+    name, _, value = text.partition("=")
+    try:
+        return name, json.loads(value)
+    except json.JSONDecodeError:
+        return name, value
+
+
 def _summary(path: Path) -> None:
     rows = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
     base = {(r["case"], r["variant"]): r["dice"] for r in rows if r["condition"] == "acquired"}
@@ -168,6 +178,9 @@ def main(argv=None) -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--jobs", type=int, default=1)
     parser.add_argument(
+        "--param", action="append", default=[], help="Model parameter NAME=VALUE (training)."
+    )
+    parser.add_argument(
         "--conditions",
         default=",".join(CONDITIONS),
         help="Comma-separated: acquired, pad_zeros, pad_noise, rotN (0-180), scaleS "
@@ -193,7 +206,10 @@ def main(argv=None) -> int:
         model = load_model(args.model)
     else:
         t0 = time.perf_counter()
-        model = ShapePriorSegmenter(labels=LABELS, random_state=args.seed, n_jobs=args.jobs)
+        params = dict(_param(text) for text in args.param)
+        model = ShapePriorSegmenter(
+            labels=LABELS, random_state=args.seed, n_jobs=args.jobs, **params
+        )
         model.fit(cohort[train])
         print(f"trained on {len(train)} cases in {time.perf_counter() - t0:.0f} s", flush=True)
         if args.model is not None:
@@ -205,6 +221,8 @@ def main(argv=None) -> int:
         models["no_handedness"] = copy.copy(model).set_params(orientation_weight=0.0)
     if "scale_free" in variants:
         models["scale_free"] = _scale_free(model, cohort, train)
+    if "frame1" in variants:
+        models["frame1"] = copy.copy(model).set_params(frame_passes=1)
     done = set()
     if args.out.is_file():
         for line in args.out.read_text().splitlines():

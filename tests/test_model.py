@@ -159,7 +159,7 @@ def _as_older_version(saved: Path, folder: Path, version: int) -> Path:
     """A copy of a saved model as medseg wrote it before format ``version + 1``."""
     old = Path(shutil.copytree(saved, folder))
     meta = json.loads((old / "model.json").read_text(encoding="utf-8"))
-    dropped = {3: (["frame.npz"], ["frame_passes"])}
+    dropped = {3: (["frame.npz"], ["frame_passes", "augment_poses"])}
     dropped[2] = (
         dropped[3][0] + ["shape_model.npz"],
         dropped[3][1] + ["refine_levels", "n_hypotheses"],

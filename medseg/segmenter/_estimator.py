@@ -108,6 +108,10 @@ class ShapePriorSegmenter(BaseEstimator):
         Jittered copies of each training shape for the clique densities.
     n_estimators : int, default 60
         Trees per landmark forest.
+    augment_poses : int, default 0
+        Copies of every training image in a random pose, size and field of view that the
+        detectors also learn from (:class:`~medseg.detection.LandmarkDetector`,
+        ``augment_poses``).
     smoothing : float, default 0.0
         Thin-plate spline smoothing of the reconstruction.
     max_iter : int, default 300
@@ -166,6 +170,7 @@ class ShapePriorSegmenter(BaseEstimator):
         landmark_noise_mm: float = 1.5,
         n_noise_copies: int = 10,
         n_estimators: int = 60,
+        augment_poses: int = 0,
         smoothing: float = 0.0,
         max_iter: int = 300,
         mrf_method: str = "mplp",
@@ -188,6 +193,7 @@ class ShapePriorSegmenter(BaseEstimator):
         self.landmark_noise_mm = landmark_noise_mm
         self.n_noise_copies = n_noise_copies
         self.n_estimators = n_estimators
+        self.augment_poses = augment_poses
         self.smoothing = smoothing
         self.max_iter = max_iter
         self.mrf_method = mrf_method
@@ -283,7 +289,10 @@ class ShapePriorSegmenter(BaseEstimator):
 
         t0 = time.perf_counter()
         self.detector_ = LandmarkDetector(
-            n_estimators=self.n_estimators, random_state=rng, n_jobs=self.n_jobs
+            n_estimators=self.n_estimators,
+            augment_poses=self.augment_poses,
+            random_state=rng,
+            n_jobs=self.n_jobs,
         ).fit(kept_images, list(self.landmarks_))
         timings["detectors"] = time.perf_counter() - t0
 

@@ -56,6 +56,7 @@ _SINCE = {
     "n_hypotheses": 3,
     "frame.npz": 4,
     "frame_passes": 4,
+    "augment_poses": 4,
 }
 _PARAMS = (
     "n_landmarks",
@@ -73,6 +74,7 @@ _PARAMS = (
     "landmark_noise_mm",
     "n_noise_copies",
     "n_estimators",
+    "augment_poses",
     "smoothing",
     "max_iter",
     "mrf_method",
