@@ -430,6 +430,9 @@ def test_bad_input_errors(fitted, blobs, small_settings):
         LandmarkDetector(n_estimators=0).fit([blobs[0][0]], [blobs[0][1]])
     with pytest.raises(ParameterError, match="stride"):
         fitted.candidates(blobs[0][0], stride=0)
+    # no pool to mine from: refused before any work, not an AttributeError after it
+    with pytest.raises(ParameterError, match="n_mining_pool"):
+        LandmarkDetector(n_mining_pool=0).fit([blobs[0][0]], [blobs[0][1]])
     with pytest.raises(MedsegError, match="landmarks"):
         LandmarkDetector(features=small_settings).fit(
             [blobs[0][0], blobs[1][0]], [blobs[0][1], blobs[1][1][:3]]
@@ -495,6 +498,8 @@ def test_save_load_roundtrip(fitted, blobs, tmp_path):
     fitted.save(path)
     loaded = LandmarkDetector.load(path)
     assert loaded.features == fitted.features and loaded.mode == fitted.mode
+    # the parameters come back as they went in (tuples stay tuples through JSON)
+    assert loaded.get_params() == fitted.get_params()
     # every constructor parameter is written, the feature settings as a plain dictionary
     params = json.loads((path / "detector.json").read_text())["params"]
     assert set(params) == set(fitted.get_params())

@@ -85,6 +85,7 @@ def test_inference_after_detection_assumes_no_pose(fitted, cohort):
     )
     plain = copy.copy(fitted)
     plain.orientation_weight = 0.0  # only the exactly invariant tables
+    plain.refine_levels = 0  # the MRF's choice: hypotheses are kept by the image's profiles
     a = plain.segment(image, candidates=cands)
     b = plain.segment(moved_image, candidates=moved)
     np.testing.assert_array_equal(b.mrf.x, a.mrf.x)
@@ -189,6 +190,7 @@ def test_older_model_versions_still_load_and_run_without_their_missing_parts(
         version < 3
     )
     assert (loaded.orientation_ is None) == (version == 1)
+    assert loaded.augment_poses == 0  # its detectors were trained without posed copies
     image = cohort[6].load_image()
     same = copy.copy(fitted)  # the same model without the parts that version lacks
     same.frame_passes = 0
@@ -355,6 +357,8 @@ def test_cli_train_on_a_dataset_folder(cohort, tmp_path, capsys):
             "3",
             "--frame-passes",
             "2",
+            "--augment-poses",
+            "1",
             "-q",
         ]
     )
@@ -364,6 +368,7 @@ def test_cli_train_on_a_dataset_folder(cohort, tmp_path, capsys):
     assert model.landmarks_.shape == (6, 12, 3)
     assert (model.orientation_weight, model.refine_levels, model.n_hypotheses) == (0.5, 1, 3)
     assert model.frame_passes == 2 and model.frame_ is not None
+    assert model.augment_poses == 1 and model.detector_.augment_poses == 1
 
 
 @pytest.mark.parametrize(
@@ -373,6 +378,7 @@ def test_cli_train_on_a_dataset_folder(cohort, tmp_path, capsys):
         ("--hypotheses", "0"),
         ("--orientation-weight", "-1"),
         ("--frame-passes", "-1"),
+        ("--augment-poses", "-1"),
     ],
 )
 def test_cli_train_refuses_a_bad_setting_before_reading(flag, value, tmp_path, capsys):

@@ -17,11 +17,14 @@ import pytest
 
 from medseg.datasets import make_phantom_cohort
 from medseg.evaluation.metrics import dice
+from medseg.evaluation.perturbation import perturb_condition
 from medseg.io import select_labels
 from medseg.segmenter import ShapePriorSegmenter
 
 N_TRAIN, N_TEST = 12, 8
 VARIANTS = ("full", "mrf", "detection", "no_handedness")
+#: Rotation of the end-to-end pose test (degrees): the issue's range ends at 45.
+POSE_ANGLE_DEG = 45
 
 
 def _error_mm(landmarks: np.ndarray, truth: np.ndarray) -> float:
@@ -29,11 +32,33 @@ def _error_mm(landmarks: np.ndarray, truth: np.ndarray) -> float:
 
 
 @pytest.fixture(scope="module")
-def figures() -> dict[str, dict[str, np.ndarray]]:
+def cohort():
+    return make_phantom_cohort(N_TRAIN + N_TEST, random_state=0, n_landmarks=20, size=48)
+
+
+@pytest.fixture(scope="module")
+def model(cohort) -> ShapePriorSegmenter:
+    """The parts' model: detectors trained on the subjects as they are (no posed copies).
+
+    The floors of the parts (prior, handedness, refinement) were measured with it; posed
+    copies change the candidates the parts work on (``posed_model``).
+    """
+    return ShapePriorSegmenter(
+        n_estimators=10, n_candidates=10, augment_poses=0, random_state=0
+    ).fit(cohort[:N_TRAIN])
+
+
+@pytest.fixture(scope="module")
+def posed_model(cohort) -> ShapePriorSegmenter:
+    """The shipped defaults: detectors also trained on posed copies of every subject."""
+    return ShapePriorSegmenter(n_estimators=10, n_candidates=10, random_state=0).fit(
+        cohort[:N_TRAIN]
+    )
+
+
+@pytest.fixture(scope="module")
+def figures(cohort, model) -> dict[str, dict[str, np.ndarray]]:
     """Per variant: Dice and mean landmark error (mm) of every held-out case."""
-    cohort = make_phantom_cohort(N_TRAIN + N_TEST, random_state=0, n_landmarks=20, size=48)
-    model = ShapePriorSegmenter(n_estimators=10, n_candidates=10, random_state=0)
-    model.fit(cohort[:N_TRAIN])
     mrf_only = copy.copy(model).set_params(refine_levels=0)
     no_handedness = copy.copy(mrf_only).set_params(orientation_weight=0.0)
     out = {name: {"dice": [], "error": []} for name in VARIANTS}
@@ -87,3 +112,50 @@ def test_refinement_improves_the_mrf_landmarks(figures):
     full, mrf = figures["full"], figures["mrf"]
     # measured: median landmark error 1.89 mm refined, 5.17 mm the MRF's choice
     assert np.median(full["error"]) <= np.median(mrf["error"]) - 2.0
+
+
+@pytest.fixture(scope="module")
+def posed(cohort, posed_model) -> dict[str, np.ndarray]:
+    """Each held-out case segmented as it is and under a resampled similarity.
+
+    The similarity: a rotation by ``POSE_ANGLE_DEG`` about a random axis through the image
+    centre, on a grid padded by 15 mm (``perturb_condition``, seeded by the case). Per case:
+    the Dice and landmark error of both runs, and their disagreement (mm, mean over
+    landmarks): the posed run's landmarks against the acquired run's mapped by the transform.
+    """
+    out = {"dice": [], "posed_dice": [], "error": [], "posed_error": [], "disagreement": []}
+    for k, case in enumerate(cohort[N_TRAIN:]):
+        image, truth = case.load_image(), case.load_landmarks()
+        reference = select_labels(case.load_label(), (1,))
+        moved, moved_label, moved_truth, change, centre = perturb_condition(
+            f"rot{POSE_ANGLE_DEG}", image, reference, truth, random_state=k
+        )
+        acquired, again = posed_model.segment(image), posed_model.segment(moved)
+        out["dice"].append(dice(acquired.label, reference))
+        out["posed_dice"].append(dice(again.label, moved_label))
+        out["error"].append(_error_mm(acquired.landmarks, truth))
+        out["posed_error"].append(_error_mm(again.landmarks, moved_truth))
+        mapped = change.apply(acquired.landmarks, centre)
+        out["disagreement"].append(_error_mm(again.landmarks, mapped))
+    return {k: np.asarray(v) for k, v in out.items()}
+
+
+@pytest.mark.slow
+def test_segmentation_does_not_depend_on_the_pose(posed):
+    """End to end: the same phantom case as acquired and rotated by 45 degrees, padded.
+
+    The phantom's outcomes are bimodal (a run finds the right configuration, about 2 mm, or
+    a wrong one, 12-17 mm, see the full segmenter's figures), and which cases land on a wrong
+    one changes with any change of the input. So the test asks what pose invariance means
+    case by case where both runs are right, and on average otherwise.
+    """
+    # measured on 2026-12-01: Dice mean 0.733 acquired, 0.777 rotated; right (< 5 mm) in 6 / 5
+    # of 8 cases; where both are right (3 cases) the landmarks disagree by 2.0-4.0 mm (median
+    # 3.2: two runs of about 2 mm error each) and the Dice by 0.003-0.030 (mean 0.013)
+    right, posed_right = posed["error"] < 5.0, posed["posed_error"] < 5.0
+    both = right & posed_right
+    assert posed["posed_dice"].mean() >= posed["dice"].mean() - 0.02
+    assert posed_right.sum() >= right.sum() - 2
+    assert both.sum() >= 2
+    assert np.median(posed["disagreement"][both]) <= 4.5
+    assert np.abs(posed["posed_dice"] - posed["dice"])[both].mean() <= 0.02

@@ -87,6 +87,15 @@ def build_parser() -> argparse.ArgumentParser:
         f"paper's single pass. Default: {_DEFAULT['frame_passes']}.",
     )
     parser.add_argument(
+        "--augment-poses",
+        type=int,
+        choices=range(11),
+        default=_DEFAULT["augment_poses"],
+        help="Copies of each training image in a random pose, size and field of view that the "
+        "landmark detectors also learn from (0: the training images only). "
+        f"Default: {_DEFAULT['augment_poses']}.",
+    )
+    parser.add_argument(
         "--jobs", type=positive_int, default=1, help="Parallel jobs for the forests. Default: 1."
     )
     return parser
@@ -105,6 +114,7 @@ def _run(args: argparse.Namespace) -> int:
         refine_levels=args.refine_levels,
         n_hypotheses=args.hypotheses,
         frame_passes=args.frame_passes,
+        augment_poses=args.augment_poses,
         random_state=args.seed,
         n_jobs=args.jobs,
     ).fit(cohort, progress=show_progress(args.quiet))

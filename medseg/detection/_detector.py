@@ -224,6 +224,12 @@ class LandmarkDetector(BaseEstimator):
             )
         if int(self.context_folds) < 2:
             raise ParameterError(f"`context_folds` must be at least 2, got {self.context_folds}")
+        needs_pool = int(self.n_mining_rounds) > 0 or self.region_radius_mm is not None
+        if int(self.n_mining_pool) < (1 if needs_pool else 0):
+            raise ParameterError(
+                f"`n_mining_pool` must be a positive integer when hard negatives are mined "
+                f"(`n_mining_rounds` > 0) or the region cascade is on, got {self.n_mining_pool}"
+            )
         if int(self.augment_poses) < 0:
             raise ParameterError(f"`augment_poses` must be >= 0, got {self.augment_poses}")
         if not 0.0 <= float(self.augment_angle_deg) <= 180.0:

@@ -133,6 +133,9 @@ def read_detector(cls, path):
         params = dict(meta["params"])
         params.setdefault("auto_context", False)  # saved before auto-context existed
         params["features"] = FeatureSettings.from_dict(params["features"])
+        for name in ("augment_scales", "augment_scale_range"):  # JSON has no tuples
+            if isinstance(params.get(name), list):
+                params[name] = tuple(params[name])
         fitted = meta["fitted"]
         detector = cls(**params)
     except ModelFileError:

@@ -108,7 +108,7 @@ class ShapePriorSegmenter(BaseEstimator):
         Jittered copies of each training shape for the clique densities.
     n_estimators : int, default 60
         Trees per landmark forest.
-    augment_poses : int, default 0
+    augment_poses : int, default 2
         Copies of every training image in a random pose, size and field of view that the
         detectors also learn from (:class:`~medseg.detection.LandmarkDetector`,
         ``augment_poses``).
@@ -170,7 +170,7 @@ class ShapePriorSegmenter(BaseEstimator):
         landmark_noise_mm: float = 1.5,
         n_noise_copies: int = 10,
         n_estimators: int = 60,
-        augment_poses: int = 0,
+        augment_poses: int = 2,
         smoothing: float = 0.0,
         max_iter: int = 300,
         mrf_method: str = "mplp",

@@ -188,6 +188,8 @@ def load_model(cls, path: Path):
     model = cls(**params)
     if version < _SINCE["refine_levels"]:
         model.refine_levels = 0  # saved before the refinement existed: the MRF's landmarks
+    if "augment_poses" not in params:
+        model.augment_poses = 0  # trained before posed copies existed: its detectors saw none
     template = path / "template.npz"
     header, npz = load_arrays(template, what="model template")
     check_format(header, **_TEMPLATE_HEADER_CHECK, source=str(template), missing_ok=True)
