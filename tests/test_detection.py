@@ -544,3 +544,40 @@ def test_features_on_real_hippocampus_image(hippocampus_dir):
     # normalised intensity: the 1st / 99th percentiles map to about 0 and 1
     lo, hi = np.percentile(feats[..., 0], [1, 99])
     assert lo == pytest.approx(0.0, abs=0.02) and hi == pytest.approx(1.0, abs=0.02)
+
+
+def test_posed_copy_moves_the_landmarks_with_the_image(blobs):
+    """A posed training copy: the image resampled and its landmarks mapped by one transform,
+    so each landmark still sits on the same anatomy (the same interpolated intensity)."""
+    from medseg.detection._training import _posed
+
+    image, landmarks = blobs[0]
+    detector = LandmarkDetector(augment_angle_deg=120.0, augment_scale_range=(0.7, 1.4))
+    rng = np.random.RandomState(3)
+
+    def values(img, points):  # linear interpolation at physical points
+        voxels = physical_to_voxel(img, points)  # (z, y, x), as the arrays
+        return ndimage.map_coordinates(sitk.GetArrayFromImage(img), voxels.T, order=1)
+
+    for _ in range(4):
+        moved, moved_landmarks = _posed(image, landmarks, detector, rng)
+        assert moved.GetSize() > image.GetSize()  # the padded field of view
+        a, b = values(image, landmarks), values(moved, moved_landmarks)
+        spread = float(np.ptp(sitk.GetArrayViewFromImage(image)))
+        assert np.median(np.abs(np.subtract(a, b))) < 0.05 * spread
+        # a similarity: the landmarks' shape is kept up to scale
+        d0 = np.linalg.norm(landmarks[:, None] - landmarks[None], axis=-1)
+        d1 = np.linalg.norm(moved_landmarks[:, None] - moved_landmarks[None], axis=-1)
+        ratio = d1[d0 > 0] / d0[d0 > 0]
+        assert np.ptp(ratio) < 1e-9 and 0.7 - 1e-9 <= ratio[0] <= 1.4 + 1e-9
+
+
+def test_posed_copies_add_training_samples(blobs, small_settings):
+    kwargs = dict(features=small_settings, n_estimators=2, random_state=0)
+    images, landmarks = [b[0] for b in blobs[:2]], [b[1] for b in blobs[:2]]
+    plain = LandmarkDetector(**kwargs).fit(images, landmarks)
+    posed = LandmarkDetector(**kwargs, augment_poses=2).fit(images, landmarks)
+    # positives: every copy contributes its landmark neighbourhoods (three times as many,
+    # up to the voxels the resampling puts within the radius)
+    ratio = posed.n_samples_[:, 1].sum() / plain.n_samples_[:, 1].sum()
+    assert 2.0 <= ratio <= 4.0

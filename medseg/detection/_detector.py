@@ -91,6 +91,10 @@ class LandmarkDetector(BaseEstimator):
         field of view.
     augment_angle_deg : float, degrees
     augment_scale_range : (2,) tuple of float
+        Scales of the posed copies (log-uniform). Wider than the range the detectors should
+        cover: a scale at the range's edge is seen rarely (hippocampus, 40 training cases:
+        recall@20 within 2 mm at scale 0.8 was 0.57 with (0.8, 1.25), 0.71 with (0.7, 1.4),
+        the acquired recall 0.645 / 0.647).
     augment_pad_mm : float, mm
     region_radius_mm : float or None, mm
         Cascade: a first forest learns where *any* landmark is within this distance, and
@@ -159,7 +163,7 @@ class LandmarkDetector(BaseEstimator):
         augment_scales: tuple[float, ...] = (),
         augment_poses: int = 0,
         augment_angle_deg: float = 180.0,
-        augment_scale_range: tuple[float, float] = (0.8, 1.25),
+        augment_scale_range: tuple[float, float] = (0.7, 1.4),
         augment_pad_mm: float = 15.0,
         region_radius_mm: float | None = 6.0,
         region_threshold: float = 0.2,

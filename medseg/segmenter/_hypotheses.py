@@ -59,6 +59,7 @@ def refined_hypotheses(
     penalised = np.array(unaries, dtype=float)
     labels = np.asarray(first.x)
     out = []
+    seen = set()
     for k in range(int(n_hypotheses)):
         if k:
             earlier = positions[rows, labels]
@@ -66,6 +67,10 @@ def refined_hypotheses(
             penalised[near < HYPOTHESIS_EXCLUSION_MM] += HYPOTHESIS_PENALTY
             other = solve(MRF.from_triplets(penalised, cliques, tables), **solve_options)
             labels = np.asarray(other.x)
+        key = labels.tobytes()
+        if key in seen:
+            continue  # the penalty did not move the solver: the same search again is waste
+        seen.add(key)
         chosen = positions[rows, labels]
         if k and collapsed(chosen):
             continue  # collapsed onto shared candidates: nothing to refine

@@ -67,8 +67,8 @@ class Segmentation:
         active-shape refinement that gives ``landmarks`` (equal to them without it).
     hypotheses : list of Hypothesis
         With refinement: the MRF solutions that were refined, the first being the MRF's
-        optimum (``mrf``); ``landmarks`` come from the one with the lowest profile cost.
-        Empty without refinement.
+        optimum (``mrf``), each labelling once; ``landmarks`` come from the one with the
+        lowest profile cost. Empty without refinement.
     frame_pose : Similarity or None
         With ``frame_passes``: the similarity from the input's physical space (mm) into the
         shape's frame in which the last pass ran (the result's landmarks, candidates and
