@@ -47,6 +47,7 @@ from __future__ import annotations
 
 import argparse
 import copy
+import functools
 import json
 import sys
 import time
@@ -55,15 +56,14 @@ from pathlib import Path
 import numpy as np
 
 from medseg.datasets import load_cohort
-from medseg.detection import CandidateSet, gradient_directions
+from medseg.detection import gradient_directions
 from medseg.evaluation.metrics import dice, hd95
 from medseg.evaluation.perturbation import (
     CONDITIONS,
-    PoseChange,
     parse_condition,
     perturb_condition,
 )
-from medseg.io import physical_to_voxel, select_labels
+from medseg.io import select_labels
 from medseg.segmenter import ShapePriorSegmenter, load_model
 from medseg.shape import OrientationPrior, TripletPrior
 
@@ -89,18 +89,6 @@ def _split(cohort, n_train: int, n_test: int, seed: int):
             train.append(i)
     train = rng.permutation(train)[:n_train]
     return sorted(int(i) for i in train), test
-
-
-def _carried(cands: CandidateSet, change: PoseChange, centre, image) -> CandidateSet:
-    positions = change.apply(cands.positions.reshape(-1, 3), centre).reshape(cands.positions.shape)
-    voxels = physical_to_voxel(image, positions.reshape(-1, 3)).reshape(positions.shape)
-    return CandidateSet(
-        positions=positions,
-        probabilities=cands.probabilities,
-        voxels=voxels,
-        floor=cands.floor,
-        meta={},
-    )
 
 
 def _scale_free(model: ShapePriorSegmenter, cohort, train) -> ShapePriorSegmenter:
@@ -241,8 +229,9 @@ def main(argv=None) -> int:
                 if (case.case_id, cond, var) in done:
                     continue
                 t0 = time.perf_counter()
-                cands = _carried(acquired.candidates, change, centre, moved) if (
-                    var == "carried") else None  # fmt: skip
+                carried = var == "carried"
+                move = functools.partial(change.apply, centre=centre)
+                cands = acquired.candidates.mapped(move, moved) if carried else None
                 try:
                     seg = models[var].segment(moved, candidates=cands)
                     score, dist = dice(seg.label, moved_label), hd95(seg.label, moved_label)

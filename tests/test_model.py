@@ -65,9 +65,7 @@ def test_inference_after_detection_assumes_no_pose(fitted, cohort):
     with the interpolation), nor detection; they are measured by the perturbation study."""
     from scipy.spatial.transform import Rotation
 
-    from medseg.detection import CandidateSet
     from medseg.evaluation.perturbation import PoseChange, perturb_case
-    from medseg.io import physical_to_voxel
 
     image, label = cohort[7].load_image(), cohort[7].load_label()
     rotation = Rotation.from_rotvec(np.deg2rad(35.0) * np.array([0.6, -0.3, 0.74])).as_matrix()
@@ -75,14 +73,7 @@ def test_inference_after_detection_assumes_no_pose(fitted, cohort):
     centre = np.array([1.5, -2.0, 0.5])
     moved_image, _, _ = perturb_case(image, label, None, change, centre=centre)
     cands = fitted.detector_.candidates(image, n_candidates=fitted.n_candidates)
-    positions = change.apply(cands.positions.reshape(-1, 3), centre).reshape(cands.positions.shape)
-    moved = CandidateSet(
-        positions=positions,
-        probabilities=cands.probabilities,
-        voxels=physical_to_voxel(moved_image, positions.reshape(-1, 3)).reshape(positions.shape),
-        floor=cands.floor,
-        meta={},
-    )
+    moved = cands.mapped(lambda p: change.apply(p, centre), moved_image)
     plain = copy.copy(fitted)
     plain.orientation_weight = 0.0  # only the exactly invariant tables
     plain.refine_levels = 0  # the MRF's choice: hypotheses are kept by the image's profiles
