@@ -361,7 +361,9 @@ def _refine(detector, flat, shape, mask, vox, prob, half):
     if detector.mode == "per_landmark":
         for i in range(n_lm):
             sel = valid[i]
-            values[i][sel] = predict_rows(detector, flat[rows[i][sel]], [i])[:, 0]
+            # neighbourhoods of one landmark's candidates overlap: score each voxel once
+            unique, inverse = np.unique(rows[i][sel], return_inverse=True)
+            values[i][sel] = predict_rows(detector, flat[unique], [i])[inverse, 0]
     else:  # one pass of the multi-class forest over every neighbourhood
         unique, inverse = np.unique(rows[valid], return_inverse=True)
         proba = predict_rows(detector, flat[unique])

@@ -122,12 +122,15 @@ def solve_mplp(
     stall_tol: float,
     local_search: bool,
     progress,
+    warm_start: dict[int, np.ndarray] | None = None,
     decode_every: int = 5,
 ) -> SolveResult:
     """MPLP dual coordinate ascent; see :func:`medseg.mrf.solve`.
 
     One iteration is a sweep over colour classes; within a class the factors share no
     variable, so their MPLP updates are exact block-coordinate steps done as one batch.
+    ``warm_start``: multipliers ``{k: (F_k, k, L)}`` in the MRF's factor order to start from
+    (zeros by default); the result's ``multipliers`` are the final ones, in the same order.
     """
     clock = Clock(time_limit)
     n, lab = mrf.unaries.shape
@@ -147,7 +150,10 @@ def solve_mplp(
         perm[k] = np.argsort(col, kind="stable")
         scopes[k] = g.scopes[perm[k]]
         tables[k] = working_tables(g.tables, perm[k], big)
-        lam[k] = np.zeros((len(g), k, lab))
+        if warm_start is None:
+            lam[k] = np.zeros((len(g), k, lab))
+        else:
+            lam[k] = np.array(warm_start[k][perm[k]], dtype=np.float64)
         sc = col[perm[k]]
         starts = np.flatnonzero(np.r_[True, sc[1:] != sc[:-1]])
         for s, e in zip(starts.tolist(), np.r_[starts[1:], len(g)].tolist(), strict=True):
@@ -155,6 +161,10 @@ def solve_mplp(
 
     incidence = _incidence(scopes, n)
     belief = theta.copy()  # theta + sum of the multipliers of every factor on the variable
+    if warm_start is not None:
+        for k in orders:
+            for q in range(k):
+                np.add.at(belief, scopes[k][:, q], lam[k][:, q])
     primal = PrimalTracker(mrf, local_search=local_search)
     best_lb = -np.inf
     hist_e, hist_lb = [], []
@@ -194,6 +204,10 @@ def solve_mplp(
             break
 
     lower, mm = _dual_certificate(theta, scopes, tables, lam, n, lab)
+    multipliers = {}
+    for k in orders:
+        multipliers[k] = np.empty_like(lam[k])
+        multipliers[k][perm[k]] = lam[k]
     return certified_result(
         mrf,
         primal,
@@ -208,4 +222,5 @@ def solve_mplp(
         history=(hist_e, hist_lb),
         method="mplp",
         n_colours=n_colours,
+        multipliers=multipliers,
     )

@@ -66,6 +66,7 @@ def solve(
     local_search: bool = True,
     max_bytes: int | None = None,
     progress: bool = False,
+    warm_start: SolveResult | None = None,
 ) -> SolveResult:
     """Minimise the energy of a higher-order MRF by dual decomposition.
 
@@ -109,6 +110,12 @@ def solve(
         :func:`estimate_solver_bytes` before anything is allocated.
     progress : bool, default False
         Show a tqdm bar of the iterations (only on a terminal).
+    warm_start : SolveResult, optional
+        An earlier MPLP or SRMP result on an MRF with the same factors (scopes and label
+        counts; the unaries and tables may differ): its ``multipliers`` start the dual
+        instead of zeros. Any multipliers give a valid bound, so this only changes how fast
+        the bound and the labelling improve: a solve of the same factors with other unaries
+        (the segmenter's further hypotheses) needs far fewer iterations from there.
 
     Returns
     -------
@@ -158,6 +165,7 @@ def solve(
     True
     """
     _solve_iv(mrf, method, max_iter, tol, atol, time_limit, patience)
+    warm = _warm_multipliers(mrf, method, warm_start)
     check_memory(estimate_solver_bytes(mrf, method), max_bytes, f"solve(method={method!r})")
     with tqdm(
         total=max_iter, desc=f"MRF {method}", disable=not (progress and show_progress())
@@ -185,4 +193,34 @@ def solve(
             stall_tol=tol / 100.0,
             local_search=local_search,
             progress=bar,
+            warm_start=warm,
         )
+
+
+def _warm_multipliers(mrf: MRF, method: str, warm_start) -> dict | None:
+    """The multipliers of ``warm_start``, checked against ``mrf``'s factors."""
+    if warm_start is None:
+        return None
+    if method == "subgradient":
+        raise ProblemDefinitionError(
+            "`warm_start` is supported by method='mplp' and 'srmp', not 'subgradient'"
+        )
+    multipliers = warm_start.get("multipliers") if isinstance(warm_start, dict) else None
+    if multipliers is None:
+        raise ProblemDefinitionError(
+            "`warm_start` must be the SolveResult of an earlier solve with method='mplp' or "
+            "'srmp' (it carries `multipliers`)"
+        )
+    for k, g in mrf.groups.items():
+        expected = (len(g), k, mrf.max_labels)
+        got = getattr(multipliers.get(k), "shape", None)
+        if got != expected:
+            raise ProblemDefinitionError(
+                f"`warm_start` does not fit this MRF: multipliers of its order-{k} factors "
+                f"have shape {got}, expected {expected} (same factors and label counts)"
+            )
+    if set(multipliers) != set(mrf.groups):
+        raise ProblemDefinitionError(
+            "`warm_start` does not fit this MRF: it has factors of other orders"
+        )
+    return multipliers

@@ -142,6 +142,7 @@ def solve_srmp(
     stall_tol: float,
     local_search: bool,
     progress,
+    warm_start: dict[int, np.ndarray] | None = None,
     decode_every: int = 5,
     burst_steps: int = 100,
     max_bursts: int = 3,
@@ -157,7 +158,10 @@ def solve_srmp(
     theta = np.minimum(mrf.unaries, big)
     scopes = {k: g.scopes for k, g in mrf.groups.items()}
     tables = {k: np.minimum(g.tables, np.float32(big)) for k, g in mrf.groups.items()}
-    msg = {k: np.zeros((len(g), k, lab)) for k, g in mrf.groups.items()}
+    if warm_start is None:
+        msg = {k: np.zeros((len(g), k, lab)) for k, g in mrf.groups.items()}
+    else:
+        msg = {k: np.array(warm_start[k], dtype=np.float64) for k in mrf.groups}
     incidence = _incidence(scopes, n)
     order = np.arange(n)
     pregather = sum(2 * (k - 1) * t.nbytes for k, t in tables.items()) <= PREGATHER_BYTES
@@ -221,4 +225,5 @@ def solve_srmp(
         history=(hist_e, hist_lb),
         method="srmp",
         n_subgradient_steps=n_sub,
+        multipliers={k: m.copy() for k, m in msg.items()},
     )

@@ -106,8 +106,11 @@ class ShapePriorSegmenter(BaseEstimator):
         potentials in the thousands and the detectors' evidence is drowned).
     n_noise_copies : int, default 10
         Jittered copies of each training shape for the clique densities.
-    n_estimators : int, default 60
-        Trees per landmark forest.
+    n_estimators : int, default 20
+        Trees per landmark forest. 20 trees lose nothing against 60 (hippocampus, 80
+        training cases, 20 held-out subjects, max_iter 100: mean Dice 0.815 with 20, 0.817
+        with 30, 0.812 with 60, the paired differences within one standard error) and take a third of the
+        time to train, store and evaluate.
     augment_poses : int, default 2
         Copies of every training image in a random pose, size and field of view that the
         detectors also learn from (:class:`~medseg.detection.LandmarkDetector`,
@@ -116,8 +119,11 @@ class ShapePriorSegmenter(BaseEstimator):
         training; 0 trains on the images as they are.
     smoothing : float, default 0.0
         Thin-plate spline smoothing of the reconstruction.
-    max_iter : int, default 300
-        Iterations of the MRF solver.
+    max_iter : int, default 100
+        Iterations of the MRF solver (its first solve; the further hypotheses take at most
+        30, warm-started). 100 rather than 300: a third of the time, and on the hippocampus
+        (80 training cases, 20 held-out subjects) a mean Dice 0.007 lower (0.812 against
+        0.819, within one standard error of the paired differences).
     mrf_method : {"mplp", "srmp", "subgradient"}, default "mplp"
         MRF solver (see :func:`medseg.mrf.solve`); "subgradient" is the paper's dual
         decomposition into factor trees.
@@ -171,10 +177,10 @@ class ShapePriorSegmenter(BaseEstimator):
         frame_passes: int = 0,
         landmark_noise_mm: float = 1.5,
         n_noise_copies: int = 10,
-        n_estimators: int = 60,
+        n_estimators: int = 20,
         augment_poses: int = 2,
         smoothing: float = 0.0,
-        max_iter: int = 300,
+        max_iter: int = 100,
         mrf_method: str = "mplp",
         random_state=None,
         n_jobs: int = 1,

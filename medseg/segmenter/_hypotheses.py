@@ -23,6 +23,11 @@ __all__ = ["refined_hypotheses", "collapsed", "check_not_collapsed", "margin"]
 # of the landmark's position in an earlier hypothesis, so the solver moves elsewhere.
 HYPOTHESIS_PENALTY = 5.0
 HYPOTHESIS_EXCLUSION_MM = 4.0
+# Iterations of each further solve, warm-started from the solve before it (the same factors,
+# only the penalised unaries differ). Hippocampus, 20 held-out subjects: the hypothesis chosen
+# and the Dice were the same with 30 warm iterations as with 100 or 300 from zero (mean Dice
+# 0.810 against 0.812), at a fifth of the time.
+HYPOTHESIS_MAX_ITER = 30
 
 
 def refined_hypotheses(
@@ -53,19 +58,27 @@ def refined_hypotheses(
         The MRF's optimum, already solved.
     n_hypotheses, refine_levels : int
     solve_options : dict
-        Keyword arguments of :func:`medseg.mrf.solve` for the further solves.
+        Keyword arguments of :func:`medseg.mrf.solve` for the further solves (their
+        ``max_iter`` capped at :data:`HYPOTHESIS_MAX_ITER`, each warm-started from the
+        solve before it).
     """
     rows = np.arange(positions.shape[0])
     penalised = np.array(unaries, dtype=float)
     labels = np.asarray(first.x)
     out = []
     seen = set()
+    previous = first
     for k in range(int(n_hypotheses)):
         if k:
             earlier = positions[rows, labels]
             near = np.linalg.norm(positions - earlier[:, None], axis=-1)
             penalised[near < HYPOTHESIS_EXCLUSION_MM] += HYPOTHESIS_PENALTY
-            other = solve(MRF.from_triplets(penalised, cliques, tables), **solve_options)
+            # the subgradient solver has no multipliers to start from
+            warm = previous if "multipliers" in previous else None
+            options = dict(solve_options, warm_start=warm)
+            options["max_iter"] = min(int(options["max_iter"]), HYPOTHESIS_MAX_ITER)
+            other = solve(MRF.from_triplets(penalised, cliques, tables), **options)
+            previous = other
             labels = np.asarray(other.x)
         key = labels.tobytes()
         if key in seen:
