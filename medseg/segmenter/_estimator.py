@@ -109,8 +109,8 @@ class ShapePriorSegmenter(BaseEstimator):
     n_estimators : int, default 20
         Trees per landmark forest. 20 trees lose nothing against 60 (hippocampus, 80
         training cases, 20 held-out subjects, max_iter 100: mean Dice 0.815 with 20, 0.817
-        with 30, 0.812 with 60, the paired differences within one standard error) and take a third of the
-        time to train, store and evaluate.
+        with 30, 0.812 with 60, the paired differences within one standard error) and take
+        a third of the time to train, store and evaluate.
     augment_poses : int, default 2
         Copies of every training image in a random pose, size and field of view that the
         detectors also learn from (:class:`~medseg.detection.LandmarkDetector`,
