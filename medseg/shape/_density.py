@@ -159,13 +159,12 @@ def mixture_logpdf(x: np.ndarray, params: MixtureParams) -> np.ndarray:
     -----
     The log-sum-exp over components is accumulated one component at a time, so the memory
     is a few (C, P) arrays whatever the number of components (Parzen windows have one per
-    training shape). The Mahalanobis term is written out over the upper-triangular factor,
-    on one (C, P) plane per dimension: a batched ``(P, D) @ (D, D)`` product per clique is
-    several times slower for the small ``D`` (2 or 3) of the invariants.
+    training shape). The Mahalanobis term is written out over the upper-triangular factor, on
+    one (C, P) difference plane per dimension: a batched ``(P, D) @ (D, D)`` product per
+    clique is slower for the small ``D`` (2 or 3) of the invariants.
     """
     u = params.precisions_cholesky
     dim = u.shape[-1]
-    planes = np.ascontiguousarray(np.moveaxis(x, -1, 0))  # (D, C, P)
     logdet = np.log(np.diagonal(u, axis1=-2, axis2=-1)).sum(-1)  # (C, K)
     with np.errstate(divide="ignore"):
         logw = np.log(params.weights)  # padding -> -inf
@@ -174,8 +173,8 @@ def mixture_logpdf(x: np.ndarray, params: MixtureParams) -> np.ndarray:
     run_sum = None
     for k in range(params.weights.shape[1]):
         # |(x - mean) @ U|^2 with U the precision's upper-triangular Cholesky factor
-        diff = planes - params.means[:, k].T[:, :, None]
-        v = np.zeros(planes.shape[1:])
+        diff = [x[..., i] - params.means[:, k, i, None] for i in range(dim)]  # D (C, P)
+        v = np.zeros(x.shape[:2])
         for j in range(dim):
             y = diff[0] * u[:, k, 0, j][:, None]
             for i in range(1, j + 1):
