@@ -525,7 +525,7 @@ def test_load_rejects_bad_files(fitted, tmp_path):
     with pytest.raises(ModelFileError, match="newer"):
         LandmarkDetector.load(path)
     fitted.save(path)
-    (path / "forests.skops").write_bytes(b"not a zip file")
+    (path / "forests.npz").write_bytes(b"not a zip file")
     with pytest.raises(ModelFileError, match="corrupt"):
         LandmarkDetector.load(path)
     fitted.save(path)

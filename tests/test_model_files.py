@@ -24,7 +24,7 @@ import pytest
 import skops.io as sio
 from test_bad_inputs import _tiny
 
-from medseg.detection import LandmarkDetector
+from medseg.detection import LandmarkDetector, save_detector
 from medseg.errors import InputFileError, ModelFileError
 from medseg.inference.cli import main as segment_main
 from medseg.io import _archive as _io_archive
@@ -43,11 +43,22 @@ def forged(tiny, tmp_path) -> Path:
 
 
 def _reseal(folder: Path) -> None:
-    """Recompute the checksums in model.json, as a forger would."""
+    """Recompute the checksums in model.json for the files present, as a forger would."""
     meta = json.loads((folder / "model.json").read_text(encoding="utf-8"))
-    for name in meta["checksums"]:
-        meta["checksums"][name] = hashlib.sha256((folder / name).read_bytes()).hexdigest()
+    meta["checksums"] = {
+        str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(folder.rglob("*"))
+        if p.is_file() and p.name != "model.json"
+    }
     (folder / "model.json").write_text(json.dumps(meta), encoding="utf-8")
+
+
+def _as_skops(folder: Path) -> Path:
+    """Rewrite the model's detector in detector format 1 (skops), as older medseg saved it."""
+    detector = LandmarkDetector.load(folder / "detector")
+    save_detector(detector, folder / "detector", format_version=1)
+    _reseal(folder)
+    return folder / "detector" / "forests.skops"
 
 
 def _rezip(path: Path, members: dict[str, bytes]) -> None:
@@ -120,11 +131,20 @@ class _Payload:
         Path(state["marker"]).write_text("code ran on load", encoding="utf-8")
 
 
+def test_model_with_a_skops_detector_still_loads(tiny, forged):
+    """Models saved before detector format 2 (forests in skops) load, predicting the same."""
+    _as_skops(forged)
+    old, new = load_model(forged), load_model(tiny[0])
+    X = np.random.default_rng(0).normal(size=(500, new.detector_.n_features_)).astype(np.float32)
+    for a, b in zip(old.detector_.forests_, new.detector_.forests_, strict=True):
+        assert np.array_equal(a.predict_proba(X), b.predict_proba(X))
+
+
 def test_skops_file_with_a_foreign_type_is_refused_without_running_it(forged, tmp_path):
     marker = tmp_path / "marker.txt"
     payload = _Payload()
     payload.__dict__["marker"] = str(marker)
-    forests = forged / "detector" / "forests.skops"
+    forests = _as_skops(forged)
     original = sio.load(forests, trusted=["sklearn.tree._tree.Tree"])
     sio.dump({"forests": original["forests"], "region": payload}, forests)
     _reseal(forged)
@@ -137,7 +157,7 @@ def test_skops_file_with_a_foreign_type_is_refused_without_running_it(forged, tm
 def test_skops_file_with_default_trusted_but_foreign_objects_is_refused(forged):
     from sklearn.linear_model import LogisticRegression
 
-    forests = forged / "detector" / "forests.skops"
+    forests = _as_skops(forged)
     original = sio.load(forests, trusted=["sklearn.tree._tree.Tree"])
     sio.dump({"forests": [LogisticRegression()] * len(original["forests"]), "region": None},
              forests)  # fmt: skip
@@ -170,7 +190,7 @@ def test_oversized_archive_is_refused_from_its_directory(forged, no_unpacking):
 
 def test_archive_limit_is_applied_to_the_whole_model(forged, monkeypatch, no_unpacking):
     sizes = [_io_archive.check_archive(forged / name) for name in
-             ("template.npz", "prior.npz", "detector/forests.skops")]  # fmt: skip
+             ("template.npz", "prior.npz", "detector/forests.npz")]  # fmt: skip
     monkeypatch.setattr(_io_archive, "MAX_UNPACKED_BYTES", max(sizes) + 1)
     from medseg.segmenter import _persistence as model_io
 
@@ -222,7 +242,7 @@ def test_forged_template_archive_is_refused_before_unpacking(forge, words, forge
 
 
 def test_forged_prior_and_detector_archives_are_refused(forged, no_unpacking):
-    for name in ("prior.npz", "detector/forests.skops"):
+    for name in ("prior.npz", "detector/forests.npz"):
         copy = Path(shutil.copytree(forged, forged.parent / name.replace("/", "_")))
         _set_declared_sizes(copy / name, 2, 0xFFFFFFF0)
         _reseal(copy)
@@ -232,7 +252,7 @@ def test_forged_prior_and_detector_archives_are_refused(forged, no_unpacking):
 
 
 def test_detector_folder_alone_is_checked_too(forged, no_unpacking):
-    _set_declared_sizes(forged / "detector" / "forests.skops", 2, 0xFFFFFFF0)
+    _set_declared_sizes(forged / "detector" / "forests.npz", 2, 0xFFFFFFF0)
     with pytest.raises(ModelFileError, match="refusing to unpack"):
         LandmarkDetector.load(forged / "detector")
 
@@ -286,7 +306,7 @@ def test_segment_cli_with_a_forged_model(forge, forged, tiny, tmp_path, capfd):
         _set_declared_sizes(forged / "template.npz", 2, 0xFFFFFFF0)
         where = "template.npz"
     else:
-        forests = forged / "detector" / "forests.skops"
+        forests = _as_skops(forged)
         original = sio.load(forests, trusted=["sklearn.tree._tree.Tree"])
         sio.dump({"forests": original["forests"], "region": _Payload()}, forests)
         where = "forests.skops"

@@ -19,6 +19,7 @@ import math
 import os
 import struct
 import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -63,7 +64,14 @@ def _npy_problem(zf: zipfile.ZipFile, info: zipfile.ZipInfo) -> str | None:
             else:
                 shape, _, dtype = np.lib.format.read_array_header_2_0(fh, max_header_size=10_000)
             header_bytes = fh.tell()
-    except (ValueError, OSError, EOFError, zipfile.BadZipFile) as exc:
+    except (
+        ValueError,
+        OSError,
+        EOFError,
+        zipfile.BadZipFile,
+        zlib.error,
+        NotImplementedError,
+    ) as exc:
         return f"member {info.filename!r} is not a valid .npy array ({exc})"
     if dtype.hasobject:
         return f"member {info.filename!r} holds Python objects (would need pickle)"
@@ -133,7 +141,7 @@ def check_archive(path: str | os.PathLike, *, max_bytes: int | None = None) -> i
                     problem = _npy_problem(zf, info)
                     if problem:
                         raise ModelFileError(f"{path}: {problem}; the file is corrupt or forged")
-    except (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, EOFError) as exc:
+    except (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, EOFError, zlib.error) as exc:
         raise ModelFileError(
             f"{path}: malformed zip archive ({exc}); the file is corrupt or not a medseg model file"
         ) from None

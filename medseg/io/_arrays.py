@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import os
 import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -79,10 +80,19 @@ def load_arrays(path: str | os.PathLike, *, what: str) -> tuple[dict, dict[str, 
     if not path.is_file():
         raise InputFileError(f"{what} file {path} does not exist")
     check_archive(path)
+    # a damaged member also raises zlib.error (bad deflate data) or NotImplementedError
+    # (forged compression flags)
     try:
         with np.load(path, allow_pickle=False) as npz:
             arrays = {name: npz[name] for name in npz.files}
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
+    except (
+        OSError,
+        ValueError,
+        zipfile.BadZipFile,
+        EOFError,
+        zlib.error,
+        NotImplementedError,
+    ) as exc:
         raise ModelFileError(
             f"{path} is not a readable {what} file ({exc}); it may be truncated or not a "
             "medseg model"

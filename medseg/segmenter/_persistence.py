@@ -5,7 +5,8 @@ Layout of a model folder::
     model.json        format version, medseg version, parameters, training summary,
                       and the SHA-256 of every other file
     template.npz      template mask (with its geometry), landmarks, surface, training landmarks
-    detector/         written by LandmarkDetector.save (skops + JSON)
+    detector/         written by LandmarkDetector.save (JSON + NPZ arrays; skops in
+                      detector format 1)
     prior.npz         written by TripletPrior.save (NPZ with a JSON header)
     orientation.npz   written by OrientationPrior.save; since version 2
     shape_model.npz   written by ActiveShapeModel.save (the model refining the landmarks);
@@ -19,7 +20,7 @@ before anything is deserialised.
 A model folder is untrusted input: nothing on the load path uses pickle (``allow_pickle=False``
 on every ``np.load``; skops with an explicit list of trusted types), and every archive
 (``template.npz``, ``prior.npz``, ``orientation.npz``, ``shape_model.npz``,
-``detector/forests.skops``) is checked
+``detector/**/forests.npz`` or ``forests.skops``) is checked
 from its zip directory and ``.npy`` headers before it is unpacked
 (:func:`medseg.io._archive.check_archive`): an oversized, forged or malformed archive is refused
 with a :class:`ModelFileError`.
@@ -81,10 +82,10 @@ _PARAMS = (
     "n_jobs",
 )
 MAX_MODEL_BYTES = 2 * 1024**3
-_ARCHIVES = (
-    "template.npz", "prior.npz", "orientation.npz", "shape_model.npz", "frame.npz",
-    "detector/forests.skops",
-)  # fmt: skip
+_ARCHIVES = ("template.npz", "prior.npz", "orientation.npz", "shape_model.npz", "frame.npz")
+#: the detector's forests: arrays (detector format 2) or skops (format 1), at any depth
+#: (stage1/ of an auto-context detector holds its own)
+_DETECTOR_ARCHIVES = ("forests.npz", "forests.skops")
 _TEMPLATE_HEADER_CHECK = {"format": "medseg.segmenter.template", "version": 1}
 _TEMPLATE_HEADER = {"format": "medseg.segmenter.template", "format_version": 1}
 _TEMPLATE_ARRAYS = ("mask", "spacing", "origin", "direction", "landmarks", "vertices", "faces",
@@ -248,6 +249,17 @@ def _check_archives(path: Path, version: int) -> None:
         if not (path / name).is_file():
             raise ModelFileError(f"{path} is missing {name}; the model folder is incomplete")
         total += check_archive(path / name)
+    forests = sorted(p for p in (path / "detector").rglob("forests.*")
+                     if p.name in _DETECTOR_ARCHIVES and p.is_file())  # fmt: skip
+    if (
+        not (path / "detector" / "forests.npz").is_file()
+        and not (path / "detector" / "forests.skops").is_file()
+    ):
+        raise ModelFileError(
+            f"{path} is missing detector/forests.npz; the model folder is incomplete"
+        )
+    for file in forests:
+        total += check_archive(file)
     if total > MAX_UNPACKED_BYTES:
         raise ModelFileError(
             f"{path}: its archives declare {total / 1e9:.1f} GB of uncompressed content, above "
