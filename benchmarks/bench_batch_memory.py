@@ -1,9 +1,9 @@
 """Memory of batch inference: does ``medseg-segment`` on a folder stay flat over 100 images?
 
 Trains a small phantom model, writes ``--n-images`` phantom images into a folder, and runs
-batch inference over the folder exactly as ``medseg-segment -m MODEL -i FOLDER -o OUT``
-does (``medseg.inference.cli.main``), measuring the resident set size (VmRSS from
-``/proc/<pid>/status``):
+batch inference over the folder exactly as ``medseg-segment -m MODEL -i FOLDER -o OUT
+--jobs 1`` does (``medseg.inference.cli.main`` in one process; the default runs one worker
+process per core), measuring the resident set size (VmRSS from ``/proc/<pid>/status``):
 
 * ``subprocess`` (default): a fresh Python process runs the CLI; this script samples its
   VmRSS every ``--interval`` seconds and counts the label maps written so far, so each sample
@@ -143,7 +143,7 @@ def run_subprocess(
         for name in _THREAD_VARS:
             env[name] = str(threads)
     cmd = [sys.executable, "-c", _CLI, "-m", str(model), "-i", str(images), "-o", str(labels)]
-    cmd.append("-q")
+    cmd += ["-q", "--jobs", "1"]  # one process to sample (the default is one per core)
     t0 = time.perf_counter()
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     proc = subprocess.Popen(cmd, env=env, cwd=str(REPO))
@@ -193,7 +193,7 @@ def run_inprocess(
     cpu0 = time.process_time()
     thread.start()
     with threadpool_limits(limits=threads):
-        code = main(["-m", str(model), "-i", str(images), "-o", str(labels), "-q"])
+        code = main(["-m", str(model), "-i", str(images), "-o", str(labels), "-q", "--jobs", "1"])
     samples.append((time.perf_counter() - t0, _n_done(labels), _rss_mib()))
     stop.set()
     thread.join()

@@ -18,8 +18,8 @@ from medseg.progress import show_progress
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from medseg.evaluation.evaluate import DEFAULT_PERTURBATION
-    from medseg.evaluation.methods import DEFAULT_METHODS, METHOD_NAMES
+    # the light module of the defaults, not the evaluation (scikit-learn, matplotlib, ...)
+    from medseg.evaluation.methods import DEFAULT_METHODS, DEFAULT_PERTURBATION, METHOD_NAMES
 
     parser = command_parser(
         "medseg-evaluate",

@@ -14,16 +14,11 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-import numpy as np
-from tqdm.auto import tqdm
-
 from medseg._cli import EXIT_OK, command_parser, run_cli
-from medseg.datasets import make_phantom_cohort, write_cohort
 from medseg.errors import MedsegError
-from medseg.evaluation.metrics import landmark_errors, score_segmentation
-from medseg.io import select_labels, write_image
-from medseg.progress import show_progress
-from medseg.segmenter import ShapePriorSegmenter
+
+# The pipeline (scikit-learn, SimpleITK, pyvista, ...) is imported by _run, so that --help
+# and argument errors answer at once (tests/test_cli.py checks).
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -45,6 +40,15 @@ def build_parser() -> argparse.ArgumentParser:
 def _run(args: argparse.Namespace) -> int:
     if not 1 <= args.test < args.subjects:
         raise MedsegError("--test must be at least 1 and less than --subjects")
+    import numpy as np
+    from tqdm.auto import tqdm
+
+    from medseg.datasets import make_phantom_cohort, write_cohort
+    from medseg.evaluation.metrics import landmark_errors, score_segmentation
+    from medseg.io import select_labels, write_image
+    from medseg.progress import show_progress
+    from medseg.segmenter import ShapePriorSegmenter
+
     progress = show_progress(args.quiet)
     out = Path(args.output)
     start = time.perf_counter()

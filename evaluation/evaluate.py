@@ -18,6 +18,7 @@ from medseg.errors import CohortError
 from medseg.evaluation.folds import check_cohort
 from medseg.evaluation.methods import (
     DEFAULT_METHODS,
+    DEFAULT_PERTURBATION,
     MethodSpec,
     default_methods,
     resolve_methods,
@@ -27,11 +28,6 @@ from medseg.evaluation.report import write_report
 from medseg.evaluation.runner import run_folds
 
 __all__ = ["run_evaluation", "resolve_cohort", "DEFAULT_PERTURBATION"]
-
-#: Conditions of the default pose-perturbation study (besides the unperturbed case): one of
-#: each kind, rotation only, scale only, and the random similarity of the issue's protocol
-#: (as many perturbed copies as the earlier default of three angles, so about the same cost).
-DEFAULT_PERTURBATION = ("rot90", "scale1.25", "random")
 
 
 def resolve_cohort(source, *, seed: int = 0, max_subjects: int | None = None):

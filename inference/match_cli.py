@@ -7,12 +7,10 @@ import sys
 import time
 from collections.abc import Sequence
 
-import numpy as np
-
 from medseg._cli import command_parser, run_cli
-from medseg.io import atomic_write, check_not_protected
-from medseg.matching import check_mesh, match_surfaces, read_mesh
-from medseg.progress import show_progress
+
+# The matcher (numpy, scipy, potpourri3d, pyvista, ...) is imported by the functions that
+# use it, so that --help and argument errors answer at once (tests/test_cli.py checks).
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -61,12 +59,20 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _write_map(path: str, values: np.ndarray, protect: Sequence[str]) -> None:
+def _write_map(path: str, values, protect: Sequence[str]) -> None:
+    import numpy as np
+
+    from medseg.io import atomic_write
+
     with atomic_write(path, protect=protect) as tmp:
         np.savetxt(tmp, values, fmt="%d")
 
 
 def _run(args: argparse.Namespace) -> int:
+    from medseg.io import check_not_protected
+    from medseg.matching import check_mesh, match_surfaces, read_mesh
+    from medseg.progress import show_progress
+
     inputs = [args.source, args.target]
     for out in (args.output, args.inverse):
         if out is not None:

@@ -102,6 +102,11 @@ def parse_labels(text: str) -> tuple[int, ...]:
     return labels
 
 
+def machine_cores() -> int:
+    """The machine's cores (``os.cpu_count()``, 1 if unknown): the default of ``--jobs``."""
+    return os.cpu_count() or 1
+
+
 def positive_int(text: str) -> int:
     """argparse type: an integer >= 1 (a bad value is argparse's one-line usage error)."""
     try:

@@ -28,7 +28,7 @@ from medseg.memory import (
     triplet_mrf_bytes,
 )
 from medseg.mrf import MRF, solve
-from medseg.segmenter import ShapePriorSegmenter
+from medseg.segmenter import ShapePriorSegmenter, segment_bytes
 from medseg.shape import OrientationPrior, TripletPrior
 
 # an estimate within this factor of the measured peak, either way
@@ -212,6 +212,12 @@ def test_segment_estimate_matches_the_measured_peak(fitted):
         ),
     )
     assert _within(estimate, measured), (estimate, measured)
+    # the one composed estimate (what medseg-segment --jobs sizes its workers by) is this one
+    model.n_candidates = n_lab
+    try:
+        assert segment_bytes(model, image.GetSize(), image.GetSpacing()) == estimate
+    finally:
+        model.n_candidates = 10
 
 
 def test_segment_refuses_before_the_work_and_says_what_to_lower(fitted, monkeypatch):

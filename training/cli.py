@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import inspect
 import sys
 import time
 from collections.abc import Sequence
@@ -13,17 +12,25 @@ from medseg._cli import (
     add_dataset_arguments,
     command_parser,
     load_dataset,
+    machine_cores,
     non_negative_float,
     parse_labels,
     positive_int,
     run_cli,
 )
 from medseg.progress import show_progress
-from medseg.segmenter import ShapePriorSegmenter
 
-# The model's own defaults, so the command line and the Python API cannot drift apart.
+# The model's defaults (ShapePriorSegmenter's keyword arguments), written out here so that
+# --help answers without importing the segmenter (scikit-learn, pyvista, ...: seconds);
+# tests/test_cli.py checks them against the model's signature, so the two cannot drift apart.
 _DEFAULT = {
-    name: p.default for name, p in inspect.signature(ShapePriorSegmenter).parameters.items()
+    "n_candidates": 20,
+    "cliques": "knn",
+    "orientation_weight": 1.0,
+    "refine_levels": 2,
+    "n_hypotheses": 4,
+    "frame_passes": 0,
+    "augment_poses": 2,
 }
 
 
@@ -96,12 +103,18 @@ def build_parser() -> argparse.ArgumentParser:
         f"Default: {_DEFAULT['augment_poses']}.",
     )
     parser.add_argument(
-        "--jobs", type=positive_int, default=1, help="Parallel jobs for the forests. Default: 1."
+        "--jobs",
+        type=positive_int,
+        default=machine_cores(),
+        help="Parallel jobs (threads) for the forests. Default: the machine's cores "
+        f"({machine_cores()} here).",
     )
     return parser
 
 
 def _run(args: argparse.Namespace) -> int:
+    from medseg.segmenter import ShapePriorSegmenter
+
     labels = parse_labels(args.label)
     cohort = load_dataset(args)
     start = time.perf_counter()

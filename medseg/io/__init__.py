@@ -40,7 +40,13 @@ from medseg.io._atomic import atomic_folder, atomic_write, check_not_protected
 from medseg.io._checks import check_image, check_same_geometry
 from medseg.io._coordinates import image_geometry, physical_to_voxel, voxel_to_physical
 from medseg.io._dicom import write_dicom_series
-from medseg.io._images import IMAGE_SUFFIXES, image_suffix, read_image, write_image
+from medseg.io._images import (
+    IMAGE_SUFFIXES,
+    image_suffix,
+    read_image,
+    read_image_header,
+    write_image,
+)
 from medseg.io._labels import read_label, select_labels
 from medseg.io._landmarks import LANDMARK_SUFFIXES, read_landmarks, write_landmarks
 from medseg.io._nibabel import as_input_type, to_nibabel
@@ -60,6 +66,7 @@ __all__ = [
     "LANDMARK_SUFFIXES",
     "image_suffix",
     "read_image",
+    "read_image_header",
     "read_label",
     "select_labels",
     "resample_like",

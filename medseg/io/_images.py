@@ -29,7 +29,14 @@ from medseg.io._checks import (
 from medseg.io._dicom import read_dicom_folder
 from medseg.io._nibabel import from_nibabel, to_nibabel
 
-__all__ = ["IMAGE_SUFFIXES", "READ_SUFFIXES", "image_suffix", "read_image", "write_image"]
+__all__ = [
+    "IMAGE_SUFFIXES",
+    "READ_SUFFIXES",
+    "image_suffix",
+    "read_image",
+    "read_image_header",
+    "write_image",
+]
 
 #: Image file suffixes medseg reads and writes, with the ITK ImageIO that handles each.
 #: Also read: a folder holding a DICOM series, and single (multi-frame) ``.dcm`` files.
@@ -223,6 +230,42 @@ def _read_file(path: Path) -> sitk.Image:
             f"{str(path)!r}: cannot read this {suffix} file, it is corrupt, truncated or not "
             f"a {suffix} image ({itk_reason(exc)})"
         ) from exc
+
+
+def read_image_header(path: PathLike) -> tuple[tuple[int, ...], tuple[float, ...]]:
+    """Size (voxels) and spacing (mm) of an image file, in (x, y, z) order, from its header.
+
+    The voxels are not read nor checked (:func:`read_image` does that): this sizes work
+    before it starts, e.g. the memory one image will need.
+
+    Raises
+    ------
+    InputFileError
+        No such file.
+    ImageFormatError
+        Unknown suffix, or a header that cannot be read.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputFileError(f"{str(path)!r}: no such file")
+    suffix = _raw_suffix(path)
+    if suffix not in READ_SUFFIXES:
+        raise _unknown_format(path)
+    try:
+        if READ_SUFFIXES[suffix] == "NiftiImageIO":  # NIfTI-1 and -2 (ITK reads only -1)
+            with _quiet_nibabel():
+                header = nib.load(path).header
+            size, spacing = header.get_data_shape(), header.get_zooms()
+        else:
+            reader = sitk.ImageFileReader()
+            reader.SetImageIO(READ_SUFFIXES[suffix])
+            reader.SetFileName(str(path))
+            with _quiet_stderr():
+                reader.ReadImageInformation()
+            size, spacing = reader.GetSize(), reader.GetSpacing()
+    except Exception as exc:  # nibabel and ITK raise many kinds for a corrupt header
+        raise ImageFormatError(f"{str(path)!r}: cannot read the {suffix} header ({exc})") from exc
+    return tuple(int(n) for n in size[:3]), tuple(float(d) for d in spacing[:3])
 
 
 def read_image(source: Any, *, series_id: str | None = None, name: str | None = None) -> sitk.Image:

@@ -2,13 +2,22 @@
 
 * :class:`ShapePriorSegmenter`: ``fit(cohort)`` / ``segment(image)`` / ``save`` / ``load``;
 * :class:`Segmentation`, :class:`Hypothesis`: what ``segment`` returns;
-* :func:`load_model`: read a model folder (checksums and format version verified).
+* :func:`load_model`: read a model folder (checksums and format version verified);
+* :func:`segment_bytes`: the estimated peak memory of segmenting one image.
 
 This is the one package that wires the parts together: the correspondence step, the
 detectors, the prior, the solver and the reconstruction know only arrays and images.
 """
 
 from medseg.segmenter._estimator import MIN_TRAINING_CASES, ShapePriorSegmenter, load_model
+from medseg.segmenter._memory import segment_bytes
 from medseg.segmenter._result import Hypothesis, Segmentation
 
-__all__ = ["ShapePriorSegmenter", "Segmentation", "Hypothesis", "load_model", "MIN_TRAINING_CASES"]
+__all__ = [
+    "ShapePriorSegmenter",
+    "Segmentation",
+    "Hypothesis",
+    "load_model",
+    "segment_bytes",
+    "MIN_TRAINING_CASES",
+]

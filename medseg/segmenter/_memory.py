@@ -15,12 +15,54 @@ from medseg.geometry import procrustes_mean
 from medseg.memory import check_memory, format_bytes, memory_limit_bytes, triplet_mrf_bytes
 from medseg.shape import select_cliques
 
-__all__ = ["configured_limit", "check_mrf_memory", "check_detection_memory", "check_fit_memory"]
+__all__ = [
+    "configured_limit",
+    "segment_bytes",
+    "check_mrf_memory",
+    "check_detection_memory",
+    "check_fit_memory",
+]
 
 
 def configured_limit(memory_limit_gb: float | None) -> int | None:
     """The limit in bytes if set on the model, else None (environment / default)."""
     return None if memory_limit_gb is None else memory_limit_bytes(memory_limit_gb)
+
+
+def segment_bytes(model, size, spacing, *, use_prior: bool = True) -> int:
+    """Estimated peak memory (bytes) of ``model.segment`` on an image of ``size``.
+
+    The larger of the two allocations the guards below check: landmark detection
+    (:func:`~medseg.detection.detection_bytes`) and, with the prior, the shape-prior MRF
+    (:func:`~medseg.memory.triplet_mrf_bytes`); ``tests/test_resources.py`` compares it
+    with the measured peak. What ``medseg-segment --jobs`` sizes its worker processes by.
+
+    Parameters
+    ----------
+    model : ShapePriorSegmenter
+        A fitted model.
+    size, spacing : sequence of 3
+        The image's size (voxels) and spacing (mm) in SimpleITK's (x, y, z) order.
+    use_prior : bool
+        False for detection only (``segment(..., use_prior=False)``): no MRF.
+    """
+    detector = model.detector_
+    peak = detection_bytes(
+        tuple(size)[::-1],
+        spacing=tuple(spacing)[::-1],
+        settings=detector.features,
+        n_landmarks=detector.n_landmarks_,
+    )
+    if use_prior:
+        mrf = triplet_mrf_bytes(
+            detector.n_landmarks_,
+            len(model.prior_.cliques_),
+            int(model.n_candidates),
+            method=model.mrf_method,
+            orientation=model._uses_orientation(),
+        )
+        peak = max(peak, mrf)
+    return int(peak)
 
 
 def _mrf_hint(n_landmarks: int, n_cliques: int, n_lab: int, *, method, orientation, limit) -> str:
