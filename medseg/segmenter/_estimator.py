@@ -130,7 +130,8 @@ class ShapePriorSegmenter(BaseEstimator):
     random_state : int, Generator, RandomState or None
         Seeds every stochastic step; the same seed gives the same model.
     n_jobs : int, default 1
-        Parallel jobs for the forests.
+        Parallel jobs for the correspondence of the training shapes (processes) and the
+        forests (threads); the model does not depend on it.
     memory_limit_gb : float or None, default None
         Memory (GiB) one image may take in :meth:`fit` and :meth:`segment`; the estimate is
         checked before the work starts and a larger one is refused with
@@ -263,7 +264,11 @@ class ShapePriorSegmenter(BaseEstimator):
             self.rejected_ = {}
         else:
             corr = landmarks_from_labels(
-                masks, n_landmarks=self.n_landmarks, labels=(1,), random_state=rng
+                masks,
+                n_landmarks=self.n_landmarks,
+                labels=(1,),
+                random_state=rng,
+                n_jobs=self.n_jobs,
             )
             keep = ~np.asarray(corr.failed)
             landmarks = np.asarray(corr.landmarks)
