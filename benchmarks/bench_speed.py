@@ -8,9 +8,10 @@ Usage::
 On the hippocampus cohort of ``../shared/data`` (labels 1+2), in one run:
 
 * **training**: ``medseg-train`` on every case with ``--jobs`` (wall seconds, peak memory of
-  the process), unless ``--model`` names a model folder (trained earlier; reused as it is);
-* **model**: the folder's size on disk, and ``medseg.load_model`` in a fresh interpreter
-  (median of 3, seconds inside the process, so the interpreter's start is not counted);
+  the process), unless ``--model`` names an existing model folder (reused as it is; a
+  ``--model`` that does not exist yet is where the trained model is kept);
+* **model**: the folder's size on disk, and in a fresh interpreter (3 times) the seconds of
+  importing the segmenter (scikit-learn, SciPy, SimpleITK, ...) and of ``load_model``;
 * **one case**: ``segment`` of ``--cases`` images of distinct subjects in this process with
   one thread (the first call is a warm-up and not counted): median seconds and the median
   of each stage;
@@ -51,30 +52,47 @@ def _folder_bytes(path: Path) -> int:
     return sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
 
 
-def _children_peak_mb() -> float:
-    """Largest peak resident memory of any finished child process (MiB; Linux: KiB units)."""
-    return resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0
+_MEASURED = (
+    "import resource, subprocess, sys; subprocess.run(sys.argv[1:], check=True); "
+    "print(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)"
+)
+
+
+def _run_measured(cmd: list[str]) -> tuple[float, float]:
+    """Wall seconds of ``cmd`` and the peak resident memory (MiB) of its largest process.
+
+    Run from a fresh interpreter of its own, so that the peak is this command's alone
+    (``RUSAGE_CHILDREN`` keeps the largest of every child ever waited for).
+    """
+    t0 = time.perf_counter()
+    run = subprocess.run(
+        [sys.executable, "-c", _MEASURED, *cmd], check=True, stdout=subprocess.PIPE, text=True
+    )
+    wall = time.perf_counter() - t0
+    return wall, int(run.stdout.strip().splitlines()[-1]) / 1024.0  # Linux: KiB
 
 
 def _train(data: Path, model: Path, jobs: int) -> dict:
-    t0 = time.perf_counter()
     cmd = ["medseg-train", str(data), "-o", str(model), "--label", LABELS, "--jobs", str(jobs)]
-    subprocess.run(cmd + ["-q"], check=True)
-    return {"seconds": time.perf_counter() - t0, "peak_mb": _children_peak_mb()}
+    wall, peak = _run_measured(cmd + ["-q"])
+    return {"seconds": wall, "peak_mb": peak}
 
 
-def _load_seconds(model: Path, repeat: int = 3) -> list[float]:
+def _load_seconds(model: Path, repeat: int = 3) -> dict:
     code = (
-        "import sys, time; t = time.perf_counter(); import medseg; "
-        "medseg.load_model(sys.argv[1]); print(time.perf_counter() - t)"
+        "import sys, time; t = time.perf_counter(); from medseg.segmenter import load_model; "
+        "t1 = time.perf_counter(); load_model(sys.argv[1]); "
+        "print(t1 - t, time.perf_counter() - t1)"
     )
-    out = []
+    imports, loads = [], []
     for _ in range(repeat):
         run = subprocess.run(
             [sys.executable, "-c", code, str(model)], check=True, capture_output=True, text=True
         )
-        out.append(float(run.stdout.strip().splitlines()[-1]))
-    return out
+        a, b = run.stdout.strip().splitlines()[-1].split()
+        imports.append(float(a))
+        loads.append(float(b))
+    return {"import_seconds": imports, "load_model_seconds": loads}
 
 
 def _distinct_subjects(cohort, n: int) -> list[int]:
@@ -116,9 +134,7 @@ def _folder(model_dir: Path, cohort, n: int, jobs: int) -> dict:
         for case in cohort.cases[:n]:
             os.symlink(case.image, inputs / Path(case.image).name)
         cmd = ["medseg-segment", "-m", str(model_dir), "-i", str(inputs), "-o", str(outputs)]
-        t0 = time.perf_counter()
-        subprocess.run(cmd + ["--jobs", str(jobs), "-q"], check=True)
-        wall = time.perf_counter() - t0
+        wall, peak = _run_measured(cmd + ["--jobs", str(jobs), "-q"])
         written = len(list(outputs.iterdir()))
     return {
         "n_cases": n,
@@ -126,7 +142,7 @@ def _folder(model_dir: Path, cohort, n: int, jobs: int) -> dict:
         "wall_seconds": wall,
         "seconds_per_case": wall / n,
         "written": written,
-        "peak_mb_largest_process": _children_peak_mb(),
+        "peak_mb_largest_process": peak,
     }
 
 
@@ -164,13 +180,13 @@ def main(argv=None) -> int:
     result: dict = {"cohort": str(args.data), "n_cases": len(cohort), "cpu_count": os.cpu_count()}
     with tempfile.TemporaryDirectory() as tmp:
         model = args.model
-        if model is None:
-            model = Path(tmp, "model")
+        if model is None or not model.exists():
+            model = model or Path(tmp, "model")
             result["training"] = _train(args.data, model, args.jobs)
             print(json.dumps({"training": result["training"]}), flush=True)
         result["model_mb"] = _folder_bytes(model) / 2**20
-        result["load_seconds"] = _load_seconds(model)
-        print(json.dumps({k: result[k] for k in ("model_mb", "load_seconds")}), flush=True)
+        result["load"] = _load_seconds(model)
+        print(json.dumps({k: result[k] for k in ("model_mb", "load")}), flush=True)
         cases = _distinct_subjects(cohort, args.cases + 1)
         result["per_case"] = _per_case(model, cohort, cases)
         print(json.dumps({"per_case": result["per_case"]}), flush=True)
