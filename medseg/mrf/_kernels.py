@@ -6,7 +6,14 @@ import numpy as np
 
 from medseg.mrf._model import MRF
 
-__all__ = ["forbidden_cost", "working_tables", "min_to_axis", "all_min_marginals", "chunks"]
+__all__ = [
+    "forbidden_cost",
+    "working_tables",
+    "min_to_axis",
+    "all_min_marginals",
+    "chunks",
+    "beliefs",
+]
 
 #: Largest temporary (bytes) a batched kernel allocates at once; blocks are cut to fit.
 CHUNK_BYTES = 8 * 2**20
@@ -33,6 +40,20 @@ def working_tables(table: np.ndarray, order: np.ndarray, big: float) -> np.ndarr
     """Copy of ``table[order]`` (float32) with ``+inf`` replaced by ``big``."""
     out = np.take(table, order, axis=0)
     np.minimum(out, np.float32(big), out=out)
+    return out
+
+
+def beliefs(theta: np.ndarray, scopes: dict, multipliers: dict) -> np.ndarray:
+    """``theta`` plus, on every variable, the multipliers of every factor on it (float64).
+
+    ``scopes[k]`` is ``(F_k, k)`` and ``multipliers[k]`` ``(F_k, k, L)``, in the same factor
+    order: the reparametrised unaries whose row minima sum to the dual value of a
+    reparametrisation whose factors have minimum 0.
+    """
+    out = np.array(theta, dtype=np.float64)
+    for k, sc in scopes.items():
+        for q in range(k):
+            np.add.at(out, sc[:, q], multipliers[k][:, q])
     return out
 
 

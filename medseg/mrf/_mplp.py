@@ -6,6 +6,7 @@ import numpy as np
 
 from medseg.mrf._kernels import (
     all_min_marginals,
+    beliefs,
     chunks,
     forbidden_cost,
     min_to_axis,
@@ -92,10 +93,7 @@ def _sequential_decode(belief, scopes, tables, lam, incidence, big):
 
 def _dual_certificate(theta, scopes, tables, lam, n, lab):
     """Exact (float64) dual value and min-marginal lower bounds for multipliers ``lam``."""
-    belief = theta.copy()
-    for k in scopes:
-        for q in range(k):
-            np.add.at(belief, scopes[k][:, q], lam[k][:, q])
+    belief = beliefs(theta, scopes, lam)
     lower = float(belief.min(axis=1).sum())
     extra = np.zeros((n, lab))
     for k in scopes:
@@ -160,11 +158,7 @@ def solve_mplp(
             blocks[int(sc[s])].append((k, slice(s, e)))
 
     incidence = _incidence(scopes, n)
-    belief = theta.copy()  # theta + sum of the multipliers of every factor on the variable
-    if warm_start is not None:
-        for k in orders:
-            for q in range(k):
-                np.add.at(belief, scopes[k][:, q], lam[k][:, q])
+    belief = beliefs(theta, scopes, lam)  # kept up to date by every factor update
     primal = PrimalTracker(mrf, local_search=local_search)
     best_lb = -np.inf
     hist_e, hist_lb = [], []

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from medseg.mrf._kernels import chunks, forbidden_cost, min_to_axis
+from medseg.mrf._kernels import beliefs, chunks, forbidden_cost, min_to_axis
 from medseg.mrf._model import MRF
 from medseg.mrf._mplp import _dual_certificate, _incidence, _sequential_decode
 from medseg.mrf._primal import Clock, PrimalTracker, certified_result, gap_closed
@@ -85,10 +85,7 @@ def _run_pass(plan, theta, tables, msg):
 def _factor_dual(theta, scopes, tables, msg):
     """Dual value, variable argmins (N,) and factor argmins {k: (C_k, k)} (float64)."""
     lab = theta.shape[1]
-    belief = theta.copy()
-    for k, sc in scopes.items():
-        for q in range(k):
-            np.add.at(belief, sc[:, q], msg[k][:, q])
+    belief = beliefs(theta, scopes, msg)
     value = float(belief.min(axis=1).sum())
     argmins = {}
     for k, sc in scopes.items():
@@ -177,10 +174,7 @@ def solve_srmp(
         it += 1
         _run_pass(forward, theta, tables, msg)
         _run_pass(backward, theta, tables, msg)
-        full = theta.copy()
-        for k, sc in scopes.items():
-            for q in range(k):
-                np.add.at(full, sc[:, q], msg[k][:, q])
+        full = beliefs(theta, scopes, msg)
         lb = float(full.min(axis=1).sum())
         best_lb = max(best_lb, lb)
         primal.offer(full.argmin(axis=1))
