@@ -1,4 +1,4 @@
-"""Higher-order MRF inference: dual decomposition into factor trees, min-sum BP, MPLP.
+"""MRF inference: dual decomposition into factor trees, min-sum BP, MPLP; graph cuts.
 
 The solver sees plain arrays, never images: ``N`` variables (landmarks) with ``L_i`` labels
 (candidates) each, unary costs, and factors of order 2 and 3 with dense cost tables.
@@ -9,6 +9,14 @@ The solver sees plain arrays, never images: ``N`` variables (landmarks) with ``L
 >>> res.x, res.energy, res.lower_bound, res.gap              # doctest: +SKIP
 """
 
+from medseg.mrf._cut import (
+    binary_cut_bound,
+    binary_energy,
+    grid_edges,
+    minimize_binary,
+    potts_energy,
+    potts_expansion,
+)
 from medseg.mrf._exact import estimate_ilp_bytes, exhaustive_search, solve_ilp
 from medseg.mrf._icm import icm
 from medseg.mrf._model import DEFAULT_MAX_BYTES, MRF, FactorGroup
@@ -34,4 +42,10 @@ __all__ = [
     "is_factor_forest",
     "colour_factors",
     "relative_gap",
+    "minimize_binary",
+    "binary_cut_bound",
+    "binary_energy",
+    "potts_expansion",
+    "potts_energy",
+    "grid_edges",
 ]
