@@ -27,7 +27,13 @@ from scipy.ndimage import map_coordinates
 from medseg.errors import ImageGeometryError, LabelError, ParameterError
 from medseg.io import physical_to_voxel, voxel_to_physical
 
-__all__ = ["ThinPlateSpline", "check_distinct_landmarks", "warp_mask", "warp_surface"]
+__all__ = [
+    "ThinPlateSpline",
+    "check_distinct_landmarks",
+    "warp_labels",
+    "warp_mask",
+    "warp_surface",
+]
 
 # In 3D the biharmonic (thin-plate) spline minimising the bending energy has the kernel
 # phi(r) = -r, which scipy calls "linear"; "thin_plate_spline" (r^2 log r) is the 2D one.
@@ -174,17 +180,50 @@ def warp_mask(
     interpolation of the 0/1 mask, thresholded at 0.5 (a smoother boundary than nearest
     neighbour, and the same volume to first order).
     """
-    if template_mask.GetDimension() != 3 or reference.GetDimension() != 3:
+    if template_mask.GetDimension() != 3:
         raise ImageGeometryError("warp_mask needs 3D images")
-    mask = sitk.GetArrayFromImage(template_mask) > 0
+    binary = sitk.Cast(template_mask > 0, sitk.sitkUInt8)
+    return warp_labels(
+        binary, template_landmarks, landmarks, reference, smoothing=smoothing, margin_mm=margin_mm
+    )
+
+
+def warp_labels(
+    template_labels: sitk.Image,
+    template_landmarks: ArrayLike,
+    landmarks: ArrayLike,
+    reference: sitk.Image,
+    *,
+    smoothing: float = 0.0,
+    margin_mm: float = 5.0,
+) -> sitk.Image:
+    """The template's label map carried onto ``landmarks``, keeping its label values.
+
+    As :func:`warp_mask` (same parameters), for a template with several labels (the
+    hippocampus' anterior 1 and posterior 2): the union is exactly :func:`warp_mask`'s
+    (the interpolated 0/1 union at least 0.5), and each voxel of it takes the label whose
+    interpolated indicator is largest there (ties to the lower value).
+
+    Returns
+    -------
+    label : SimpleITK image, uint8
+        The template's values inside the warped union, 0 elsewhere, on ``reference``'s grid.
+    """
+    if template_labels.GetDimension() != 3 or reference.GetDimension() != 3:
+        raise ImageGeometryError("warp_labels needs 3D images")
+    values = sitk.GetArrayFromImage(template_labels)
+    mask = values > 0
     if not mask.any():
         raise LabelError("the template mask is empty")
+    present = [int(v) for v in np.unique(values[mask])]
+    if present[-1] > 255:
+        raise LabelError(f"template label values up to {present[-1]} do not fit uint8")
     template_landmarks = _as_points(template_landmarks, "template_landmarks")
     landmarks = _as_points(landmarks, "landmarks")
 
     # Region of the reference grid that can be inside: forward-warp the template's voxels.
     forward = ThinPlateSpline(template_landmarks, landmarks, smoothing=smoothing)
-    inside_mm = forward(voxel_to_physical(template_mask, np.argwhere(mask)))
+    inside_mm = forward(voxel_to_physical(template_labels, np.argwhere(mask)))
     size_zyx = np.array(reference.GetSize()[::-1])
     spacing_zyx = np.array(reference.GetSpacing()[::-1])
     corners = physical_to_voxel(reference, inside_mm)
@@ -196,9 +235,19 @@ def warp_mask(
     if np.all(hi > lo):
         grid = np.argwhere(np.ones(hi - lo, dtype=bool)) + lo
         backward = ThinPlateSpline(landmarks, template_landmarks, smoothing=smoothing)
-        pulled = physical_to_voxel(template_mask, backward(voxel_to_physical(reference, grid)))
-        values = map_coordinates(mask.astype(np.float32), pulled.T, order=1, cval=0.0)
-        out[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]] = (values >= 0.5).reshape(hi - lo)
+        pulled = physical_to_voxel(template_labels, backward(voxel_to_physical(reference, grid))).T
+        union = map_coordinates(mask.astype(np.float32), pulled, order=1, cval=0.0)
+        block = np.zeros(len(grid), dtype=np.uint8)
+        inside = union >= 0.5
+        if len(present) == 1:
+            block[inside] = present[0]
+        else:
+            share = np.stack([
+                map_coordinates((values == v).astype(np.float32), pulled[:, inside], order=1)
+                for v in present
+            ])  # fmt: skip
+            block[inside] = np.asarray(present, dtype=np.uint8)[np.argmax(share, axis=0)]
+        out[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]] = block.reshape(hi - lo)
 
     label = sitk.GetImageFromArray(out)
     label.CopyInformation(reference)

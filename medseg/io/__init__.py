@@ -3,7 +3,8 @@
 * Images: :func:`read_image` / :func:`write_image` for NIfTI (``.nii``, ``.nii.gz``), NRRD,
   MetaImage (``.mha``, ``.mhd``) and DICOM series folders, through SimpleITK; nibabel images
   are accepted everywhere and given back with :func:`to_nibabel` / :func:`as_input_type`.
-  Label maps: :func:`read_label`, :func:`select_labels`, :func:`resample_like`.
+  Label maps: :func:`read_label`, :func:`select_labels`, :func:`label_values`,
+  :func:`resample_like`.
 * Landmarks: :func:`read_landmarks` / :func:`write_landmarks` (CSV, Slicer ``.fcsv`` and
   ``.mrk.json``).
 * Fitted model parts: :func:`save_arrays` / :func:`load_arrays` (NPZ + JSON header).
@@ -47,7 +48,7 @@ from medseg.io._images import (
     read_image_header,
     write_image,
 )
-from medseg.io._labels import read_label, select_labels
+from medseg.io._labels import label_values, read_label, select_labels
 from medseg.io._landmarks import LANDMARK_SUFFIXES, read_landmarks, write_landmarks
 from medseg.io._nibabel import as_input_type, to_nibabel
 from medseg.io._resample import (
@@ -69,6 +70,7 @@ __all__ = [
     "read_image_header",
     "read_label",
     "select_labels",
+    "label_values",
     "resample_like",
     "border_values",
     "resample_affine",

@@ -12,7 +12,7 @@ from medseg.errors import LabelError
 from medseg.io._checks import INTEGER_PIXELS, check_same_geometry, describe
 from medseg.io._images import read_image
 
-__all__ = ["read_label", "select_labels"]
+__all__ = ["label_values", "read_label", "select_labels"]
 
 
 def read_label(source: Any, reference: Any = None, *, name: str | None = None) -> sitk.Image:
@@ -132,4 +132,22 @@ def select_labels(
         )
     out = sitk.GetImageFromArray(mask.astype(np.uint8))
     out.CopyInformation(label_image)
+    return out
+
+
+def label_values(label_map: sitk.Image, labels: int | Iterable[int]) -> sitk.Image:
+    """``label_map`` with the values outside ``labels`` set to 0; a single label becomes 1.
+
+    The label map a segmenter learns and returns: the training labels' own values (the
+    hippocampus' 1 anterior, 2 posterior) when there are several, 1 for one (uint8).
+    """
+    values = sitk.GetArrayFromImage(label_map)
+    wanted = [int(labels)] if np.isscalar(labels) else [int(v) for v in labels]
+    if len(wanted) > 1 and max(wanted) > 255:
+        raise LabelError(f"label values {wanted} do not fit a uint8 label map (at most 255)")
+    kept = np.where(np.isin(values, wanted), values, 0)
+    if len(wanted) == 1:
+        kept = (kept > 0).astype(np.uint8)
+    out = sitk.GetImageFromArray(kept.astype(np.uint8))
+    out.CopyInformation(label_map)
     return out
