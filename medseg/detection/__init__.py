@@ -1,4 +1,5 @@
-"""Landmark candidate detection: pose-invariant features, Random Forests, candidate sets.
+"""What the image says: landmark candidates (pose-invariant features, Random Forests) and,
+in the shape's frame, the label of each voxel near the boundary (:class:`VoxelClassifier`).
 
 The singleton evidence of the shape MRF, ``U_i(x_i) = -log p(I | x_i)``, and the candidate
 positions ``X_i`` of each landmark (Wang et al., MICCAI 2010).
@@ -11,6 +12,7 @@ from medseg.detection._features import FeatureSettings, compute_features, featur
 from medseg.detection._memory import detection_bytes, feature_map_bytes
 from medseg.detection._persistence import save_detector
 from medseg.detection._sampling import LandmarkSamples, sample_landmark_voxels
+from medseg.detection._voxels import VoxelClassifier, context_features, voxel_features
 
 __all__ = [
     "CandidateSet",
@@ -27,4 +29,7 @@ __all__ = [
     "sample_landmark_voxels",
     "save_detector",
     "subvoxel_peak",
+    "VoxelClassifier",
+    "context_features",
+    "voxel_features",
 ]
