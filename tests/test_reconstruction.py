@@ -9,7 +9,7 @@ from scipy.spatial.transform import Rotation
 
 from medseg.errors import ImageGeometryError, LabelError
 from medseg.io import image_geometry, voxel_to_physical
-from medseg.reconstruction import ThinPlateSpline, warp_mask, warp_surface
+from medseg.reconstruction import ThinPlateSpline, warp_labels, warp_mask, warp_surface
 
 
 def _grid(size_xyz, spacing, origin, rotation=None) -> sitk.Image:
@@ -74,6 +74,25 @@ def test_identity_warp_returns_the_template(template):
     mask, landmarks = template
     out = warp_mask(mask, landmarks, landmarks, mask)
     np.testing.assert_array_equal(sitk.GetArrayFromImage(out), sitk.GetArrayFromImage(mask))
+
+
+def test_warped_labels_keep_their_values_and_the_union_of_warp_mask(template):
+    mask, landmarks = template
+    arr = sitk.GetArrayFromImage(mask)
+    x = np.arange(arr.shape[2])[None, None, :]
+    labels = sitk.GetImageFromArray((arr * np.where(x < arr.shape[2] // 2, 1, 2)).astype(np.uint8))
+    labels.CopyInformation(mask)
+    same = warp_labels(labels, landmarks, landmarks, mask)
+    np.testing.assert_array_equal(sitk.GetArrayFromImage(same), sitk.GetArrayFromImage(labels))
+    # moved and rotated onto another grid: the union is warp_mask's, both halves survive
+    rotation = Rotation.from_euler("xyz", [20, -10, 35], degrees=True)
+    grid = _grid((50, 44, 40), (0.8, 1.1, 1.3), (-22.0, -20.0, -18.0), rotation)
+    moved = landmarks @ rotation.as_matrix().T + [1.5, -2.0, 0.5]
+    out = sitk.GetArrayFromImage(warp_labels(labels, landmarks, moved, grid))
+    union = sitk.GetArrayFromImage(warp_mask(mask, landmarks, moved, grid))
+    np.testing.assert_array_equal(out > 0, union > 0)
+    assert set(np.unique(out)) == {0, 1, 2}
+    assert abs(int((out == 1).sum()) - int((out == 2).sum())) < 0.1 * (out > 0).sum()
 
 
 def test_warp_onto_oblique_anisotropic_grid_follows_the_similarity(template):
