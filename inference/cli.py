@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import json
 import multiprocessing
 import os
 import signal
@@ -84,6 +85,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="Detection only: each landmark at its best candidate (a baseline). Default: off.",
     )
     parser.add_argument(
+        "--no-boundary",
+        action="store_true",
+        help="Skip the regional stage: the template warped onto the landmarks, as the model "
+        "gives it before the voxel classifier and the graph cut. Default: off.",
+    )
+    parser.add_argument(
         "--jobs",
         type=positive_int,
         default=machine_cores(),
@@ -133,7 +140,9 @@ def _segment_one(
     model: ShapePriorSegmenter, source: Path, target: Path, args: argparse.Namespace
 ) -> str:
     from medseg.io import atomic_write, image_suffix, write_image, write_landmarks
+    from medseg.segmenter import QUALITY_THRESHOLD
 
+    model.boundary = not args.no_boundary
     seg = model.segment(source, use_prior=not args.no_prior)
     write_image(seg.label, target, protect=[source])
     stem = target.name[: -len(image_suffix(target) or target.suffix)]
@@ -148,7 +157,28 @@ def _segment_one(
         with atomic_write(surface_path, protect=[source]) as tmp:
             seg.surface.save(str(tmp))
     gap = f", duality gap {seg.mrf.gap:.2e}" if seg.mrf is not None else ""
-    return f"{source.name} -> {target}{gap}"
+    line = f"{source.name} -> {target}{gap}"
+    if seg.quality is not None:
+        with atomic_write(target.with_name(f"{stem}.quality.json"), protect=[source]) as tmp:
+            tmp.write_text(json.dumps(seg.quality, indent=2) + "\n", encoding="utf-8")
+        if seg.quality["score"] is not None:
+            line += f", quality score {seg.quality['score']:.1f}"
+        if seg.quality["flagged"]:
+            line += (
+                f"\nmedseg-segment: warning: {source.name}: the image disagrees with the shape "
+                f"(quality score {seg.quality['score']:.1f} > {QUALITY_THRESHOLD:g}); the "
+                "segmentation is likely wrong, check it"
+            )
+    return line
+
+
+def _report(text: str, quiet: bool) -> None:
+    """A case's line on stdout (unless quiet), its warning line, if any, on stderr."""
+    line, _, warning = text.partition("\n")
+    if not quiet:
+        print(line)
+    if warning:
+        print(warning, file=sys.stderr)
 
 
 def _case(
@@ -340,6 +370,13 @@ def _run(args: argparse.Namespace) -> int:
     from medseg.segmenter import load_model
 
     model = load_model(args.model)
+    if not args.no_boundary and getattr(model, "boundary_", None) is None:
+        print(
+            f"medseg-segment: {args.model} has no regional stage (trained with --no-boundary, "
+            "or saved before model format 5): the label maps are the template warped onto "
+            "the landmarks",
+            file=sys.stderr,
+        )
     source = Path(args.input)
     inputs = _inputs(source)
     batch = source.is_dir()
@@ -358,8 +395,7 @@ def _run(args: argparse.Namespace) -> int:
             line = _segment_one(model, *cases[0], args)
         except MedsegError as exc:
             raise naming(exc, cases[0][0]) from None
-        if not args.quiet:
-            print(line)
+        _report(line, args.quiet)
         return EXIT_OK
 
     workers, note = _worker_count(args, model, inputs)
@@ -392,8 +428,8 @@ def _run(args: argparse.Namespace) -> int:
                     print(
                         f"medseg-segment: skipped {cases[first][0].name}: {text}", file=sys.stderr
                     )
-                elif not args.quiet:
-                    print(text)
+                else:
+                    _report(text, args.quiet)
                 first += 1
     if failed:
         print(f"medseg-segment: {failed} of {len(inputs)} images failed", file=sys.stderr)

@@ -120,9 +120,15 @@ def test_jobs_2_writes_what_jobs_1_writes_and_skips_the_same_bad_file(folder, tm
     model, inputs = folder
     one = _segment(model, inputs, tmp_path / "one", "1", capfd)
     two = _segment(model, inputs, tmp_path / "two", "2", capfd)
-    names = sorted(p.name for p in (tmp_path / "one").iterdir())
+    written = sorted(p.name for p in (tmp_path / "one").iterdir())
+    names = [n for n in written if n.endswith(".nii.gz")]
     assert len(names) == 3 and "broken.nii.gz" not in names
-    assert sorted(p.name for p in (tmp_path / "two").iterdir()) == names  # nor temporaries
+    # beside each label map its quality record (JSON), the same from both runs
+    assert written == sorted(names + [n.replace(".nii.gz", ".quality.json") for n in names])
+    assert sorted(p.name for p in (tmp_path / "two").iterdir()) == written  # nor temporaries
+    for name in written:
+        if name.endswith(".json"):
+            assert (tmp_path / "one" / name).read_text() == (tmp_path / "two" / name).read_text()
     for name in names:
         a, b = read_image(tmp_path / "one" / name), read_image(tmp_path / "two" / name)
         assert a.GetSize() == b.GetSize() and a.GetOrigin() == b.GetOrigin()
@@ -168,3 +174,22 @@ def test_jobs_below_one_is_a_usage_error(value, folder, tmp_path, capfd):
     assert [line for line in lines if "error" in line] == [lines[-1]]
     assert lines[-1].startswith("medseg-segment: error: argument --jobs: ")
     assert not any(tmp_path.iterdir())
+
+
+def test_no_boundary_writes_the_shape_only_map_and_no_quality_record(folder, tmp_path, capfd):
+    model_path, inputs = folder
+    source = sorted(inputs.glob("phantom_*"))[0]
+    code = segment_main(["-m", str(model_path), "-i", str(source), "-o",
+                         str(tmp_path / "plain.nii.gz"), "--no-boundary"])  # fmt: skip
+    assert code == 0, capfd.readouterr().err
+    model = load_model(model_path)
+    seg = model.segment(source)
+    written = sitk.GetArrayFromImage(read_image(tmp_path / "plain.nii.gz"))
+    np.testing.assert_array_equal(written, sitk.GetArrayFromImage(seg.shape_label))
+    assert not (tmp_path / "plain.quality.json").exists()
+    assert segment_main(["-m", str(model_path), "-i", str(source), "-o",
+                         str(tmp_path / "refined.nii.gz")]) == 0  # fmt: skip
+    refined = sitk.GetArrayFromImage(read_image(tmp_path / "refined.nii.gz"))
+    np.testing.assert_array_equal(refined, sitk.GetArrayFromImage(seg.label))
+    record = json.loads((tmp_path / "refined.quality.json").read_text())
+    assert set(record) >= {"score", "flagged", "disagreement", "change", "mrf_gap"}

@@ -50,6 +50,20 @@ def test_segmentation_is_in_the_input_geometry_with_a_certified_bound(fitted, co
     assert sitk.GetArrayViewFromImage(seg.label).any()
 
 
+def test_the_regional_stage_is_on_by_default_and_can_be_turned_off(fitted, cohort):
+    image = cohort[7].load_image()
+    seg = fitted.segment(image)
+    assert fitted.boundary_ is not None and "boundary" in seg.timings
+    assert image_geometry(seg.shape_label) == image_geometry(image)
+    refined, shape = (sitk.GetArrayFromImage(x) for x in (seg.label, seg.shape_label))
+    assert set(np.unique(refined)) == {0, 1} and not np.array_equal(refined, shape)
+    off = copy.copy(fitted)
+    off.boundary = False
+    plain = off.segment(image)
+    assert "boundary" not in plain.timings
+    np.testing.assert_array_equal(sitk.GetArrayFromImage(plain.label), shape)
+
+
 def test_oblique_anisotropic_input_keeps_its_geometry(fitted):
     other = make_phantom_cohort(1, random_state=5, anisotropic=True, oblique=True, **SMALL)
     image = other[0].load_image()
@@ -151,7 +165,8 @@ def _as_older_version(saved: Path, folder: Path, version: int) -> Path:
     """A copy of a saved model as medseg wrote it before format ``version + 1``."""
     old = Path(shutil.copytree(saved, folder))
     meta = json.loads((old / "model.json").read_text(encoding="utf-8"))
-    dropped = {3: (["frame.npz"], ["frame_passes", "augment_poses"])}
+    dropped = {4: (["boundary/stage.npz", "boundary/classifier.npz"], ["boundary"])}
+    dropped[3] = (dropped[4][0] + ["frame.npz"], dropped[4][1] + ["frame_passes", "augment_poses"])
     dropped[2] = (
         dropped[3][0] + ["shape_model.npz"],
         dropped[3][1] + ["refine_levels", "n_hypotheses"],
@@ -164,6 +179,8 @@ def _as_older_version(saved: Path, folder: Path, version: int) -> Path:
     for name in files:
         (old / name).unlink()
         meta["checksums"].pop(name)
+    if (old / "boundary").is_dir():
+        (old / "boundary").rmdir()
     for name in params:
         meta["params"].pop(name)
     meta["format_version"] = version
@@ -171,11 +188,24 @@ def _as_older_version(saved: Path, folder: Path, version: int) -> Path:
     return old
 
 
-@pytest.mark.parametrize("version", [1, 2, 3])
+@pytest.mark.parametrize("version", [1, 2, 3, 4])
 def test_older_model_versions_still_load_and_run_without_their_missing_parts(
     fitted, saved, cohort, tmp_path, version
 ):
     loaded = load_model(_as_older_version(saved, tmp_path / "old", version))
+    assert loaded.boundary_ is None and not loaded.boundary and not loaded._uses_boundary()
+    if version == 4:
+        assert loaded.frame_ is not None and loaded.augment_poses == fitted.augment_poses
+        image = cohort[6].load_image()
+        seg = loaded.segment(image)
+        np.testing.assert_array_equal(seg.landmarks, fitted.segment(image).landmarks)
+        np.testing.assert_array_equal(  # the template warped onto the landmarks
+            sitk.GetArrayFromImage(seg.label), sitk.GetArrayFromImage(seg.shape_label)
+        )
+        again = loaded.save(tmp_path / "again")
+        meta = json.loads((again / "model.json").read_text(encoding="utf-8"))
+        assert meta["format_version"] == 4 and "boundary" not in meta["params"]
+        return
     assert loaded.frame_ is None and not loaded._uses_frame()
     assert (loaded.shape_model_ is None) == (version < 3) and (loaded.refine_levels == 0) == (
         version < 3
@@ -197,7 +227,9 @@ def test_older_model_versions_still_load_and_run_without_their_missing_parts(
     assert load_model(again).frame_ is None
 
 
-@pytest.mark.parametrize("name", ["orientation.npz", "shape_model.npz", "frame.npz"])
+@pytest.mark.parametrize(
+    "name", ["orientation.npz", "shape_model.npz", "frame.npz", "boundary/classifier.npz"]
+)
 def test_current_model_without_one_of_its_files_is_incomplete(saved, tmp_path, name):
     broken = Path(shutil.copytree(saved, tmp_path / "broken"))
     (broken / name).unlink()

@@ -103,6 +103,12 @@ def build_parser() -> argparse.ArgumentParser:
         f"Default: {_DEFAULT['augment_poses']}.",
     )
     parser.add_argument(
+        "--no-boundary",
+        action="store_true",
+        help="Train without the regional stage (voxel classifier and graph cut in the shape's "
+        "frame): the label maps are then the template warped onto the landmarks. Default: off.",
+    )
+    parser.add_argument(
         "--jobs",
         type=positive_int,
         default=machine_cores(),
@@ -128,6 +134,7 @@ def _run(args: argparse.Namespace) -> int:
         n_hypotheses=args.hypotheses,
         frame_passes=args.frame_passes,
         augment_poses=args.augment_poses,
+        boundary=not args.no_boundary,
         random_state=args.seed,
         n_jobs=args.jobs,
     ).fit(cohort, progress=show_progress(args.quiet))

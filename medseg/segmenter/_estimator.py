@@ -28,20 +28,25 @@ from medseg.detection import CandidateSet, LandmarkDetector, gradient_directions
 from medseg.errors import CohortError, NotFittedError, ParameterError
 from medseg.frame import ShapeFrame
 from medseg.geometry import procrustes_disparity
-from medseg.io import as_input_type, read_image, select_labels
+from medseg.io import as_input_type, label_values, read_image, select_labels
 from medseg.memory import memory_limit_bytes
 from medseg.mrf import DEFAULT_MAX_BYTES, MRF, solve
-from medseg.reconstruction import warp_mask, warp_surface
+from medseg.reconstruction import warp_labels, warp_surface
 from medseg.segmenter import _memory, _persistence
+from medseg.segmenter._boundary import BoundaryStage
 from medseg.segmenter._frame_pass import in_frame_passes
 from medseg.segmenter._hypotheses import check_not_collapsed, margin, refined_hypotheses
 from medseg.segmenter._result import Hypothesis, Located, Segmentation
 from medseg.shape import ActiveShapeModel, OrientationPrior, TripletPrior
 
-__all__ = ["ShapePriorSegmenter", "load_model", "MIN_TRAINING_CASES"]
+__all__ = ["ShapePriorSegmenter", "load_model", "MIN_TRAINING_CASES", "QUALITY_THRESHOLD"]
 
 #: Fewest training cases a model (and a cross-validation fold) may have.
 MIN_TRAINING_CASES = 5
+#: ``Segmentation.quality["score"]`` above which a segmentation is flagged as likely wrong:
+#: its disagreement between image and shape is this many standard deviations beyond what
+#: held-out training cases showed.
+QUALITY_THRESHOLD = 3.0
 _SHAPE_MODEL_LEVELS = 3  # resolution levels the refining active shape model learns
 
 
@@ -98,6 +103,12 @@ class ShapePriorSegmenter(BaseEstimator):
         upright, at its mean size, in a training-like field of view. The frame comes from
         the pose-free solution, so the result stays pose free while the detectors and the
         search see the structure as in training. 0 is the paper's single pass.
+    boundary : bool, default True
+        The regional stage (:class:`~medseg.segmenter.BoundaryStage`): in the shape's
+        frame, a voxel classifier and a graph cut move the warped template's boundary (and
+        its sub-labels) onto the image's evidence. False at :meth:`fit` trains without it;
+        False at :meth:`segment` returns the shape-only label map (as does a model saved
+        before the stage existed, format versions 1-4).
     landmark_noise_mm : float, default 1.5
         Standard deviation of the localisation noise of detected landmarks. The clique
         densities are fitted to training shapes jittered by this much (``n_noise_copies``
@@ -149,6 +160,9 @@ class ShapePriorSegmenter(BaseEstimator):
     prior_ : TripletPrior
     orientation_ : OrientationPrior or None
         None for a model saved before the handedness term existed (format version 1).
+    boundary_ : BoundaryStage or None
+        The regional stage; None when trained with ``boundary=False`` or saved before it
+        existed (format versions 1-4).
     frame_ : ShapeFrame or None
         The shape's frame, fitted on ``landmarks_`` and the training images; None for a
         model saved before it existed (format versions 1-3), which then runs one pass.
@@ -156,7 +170,8 @@ class ShapePriorSegmenter(BaseEstimator):
         The refining active shape model, fitted on ``landmarks_``; None for a model saved
         before it existed (format versions 1 and 2).
     template_mask_ : SimpleITK image
-        Binary mask of the template (reference) case.
+        Label map of the template (reference) case: the values of ``labels`` when there
+        are several (the output's sub-labels), else 1 inside.
     template_landmarks_ : (N, 3) float array, mm
     template_surface_ : tuple of ((V, 3) float array, (F, 3) int array)
     """
@@ -176,6 +191,7 @@ class ShapePriorSegmenter(BaseEstimator):
         refine_levels: int = 2,
         n_hypotheses: int = 4,
         frame_passes: int = 0,
+        boundary: bool = True,
         landmark_noise_mm: float = 1.5,
         n_noise_copies: int = 10,
         n_estimators: int = 20,
@@ -199,6 +215,7 @@ class ShapePriorSegmenter(BaseEstimator):
         self.refine_levels = refine_levels
         self.n_hypotheses = n_hypotheses
         self.frame_passes = frame_passes
+        self.boundary = boundary
         self.landmark_noise_mm = landmark_noise_mm
         self.n_noise_copies = n_noise_copies
         self.n_estimators = n_estimators
@@ -245,11 +262,13 @@ class ShapePriorSegmenter(BaseEstimator):
         rng = check_random_state(self.random_state)
         timings: dict[str, float] = {}
         t0 = time.perf_counter()
-        images, masks = [], []
+        images, masks, label_maps = [], [], []
         for case in tqdm(cohort, desc="reading cases", disable=not progress):
             image = case.load_image()
             images.append(image)
-            masks.append(select_labels(case.load_label(), self.labels, name=str(case.label)))
+            label_map = case.load_label()
+            masks.append(select_labels(label_map, self.labels, name=str(case.label)))
+            label_maps.append(label_values(label_map, self.labels))
         timings["read"] = time.perf_counter() - t0
 
         t0 = time.perf_counter()
@@ -284,7 +303,7 @@ class ShapePriorSegmenter(BaseEstimator):
             )
         self.cases_ = [cohort[i].case_id for i in np.flatnonzero(keep)]
         self.landmarks_ = landmarks[keep]
-        self.template_mask_ = masks[ref]
+        self.template_mask_ = label_maps[ref]
         self.template_landmarks_ = landmarks[ref]
         self.template_surface_ = label_surface(masks[ref])
         timings["landmarks"] = time.perf_counter() - t0
@@ -332,6 +351,18 @@ class ShapePriorSegmenter(BaseEstimator):
         )
         timings["shape_model"] = time.perf_counter() - t0
         self.frame_ = ShapeFrame.fit(self.landmarks_, kept_images)
+        self.boundary_ = None
+        if self.boundary:
+            t0 = time.perf_counter()
+            self.boundary_ = BoundaryStage(random_state=rng, n_jobs=self.n_jobs).fit(
+                self.frame_,
+                self.template_mask_,
+                self.template_landmarks_,
+                kept_images,
+                [label_maps[i] for i in np.flatnonzero(keep)],
+                self.landmarks_,
+            )
+            timings["boundary"] = time.perf_counter() - t0
         self.fit_timings_ = timings
         return self
 
@@ -363,7 +394,7 @@ class ShapePriorSegmenter(BaseEstimator):
                 self, image, found, n_passes=int(self.frame_passes), locate=self._locate
             )
         t0 = time.perf_counter()
-        label = warp_mask(
+        shape_label = warp_labels(
             self.template_mask_,
             self.template_landmarks_,
             found.landmarks,
@@ -375,8 +406,17 @@ class ShapePriorSegmenter(BaseEstimator):
             vertices, faces, self.template_landmarks_, found.landmarks, smoothing=self.smoothing
         )
         found.timings["reconstruction"] = time.perf_counter() - t0
+        label, quality = shape_label, None
+        if use_prior and self._uses_boundary():
+            t0 = time.perf_counter()
+            refined = self.boundary_.refine(
+                self.frame_, self.template_mask_, self.template_landmarks_, image, found.landmarks
+            )
+            label, quality = refined.label, _quality(found, refined)
+            found.timings["boundary"] = time.perf_counter() - t0
         return Segmentation(
             label=as_input_type(label, like=source),
+            shape_label=as_input_type(shape_label, like=source),
             landmarks=found.landmarks,
             surface=surface,
             candidates=found.candidates,
@@ -387,6 +427,7 @@ class ShapePriorSegmenter(BaseEstimator):
             hypotheses=found.hypotheses,
             image=image,
             frame_pose=found.frame_pose,
+            quality=quality,
         )
 
     def _locate(
@@ -511,6 +552,10 @@ class ShapePriorSegmenter(BaseEstimator):
         if isinstance(p, bool) or not isinstance(p, (int, np.integer)) or p < 0:
             raise ParameterError(f"`frame_passes` must be an integer >= 0; got {p!r}")
 
+    def _uses_boundary(self) -> bool:
+        """Whether segment runs the regional stage (a model without one cannot)."""
+        return bool(self.boundary) and getattr(self, "boundary_", None) is not None
+
     def _uses_frame(self) -> bool:
         """Whether segment runs passes in the shape's frame (a model without one cannot)."""
         return bool(self.frame_passes) and getattr(self, "frame_", None) is not None
@@ -525,6 +570,21 @@ class ShapePriorSegmenter(BaseEstimator):
 def load_model(path: str | Path) -> ShapePriorSegmenter:
     """Load a segmentation model saved with :meth:`ShapePriorSegmenter.save`."""
     return ShapePriorSegmenter.load(path)
+
+
+def _quality(found: Located, refined) -> dict:
+    """``Segmentation.quality``: the regional stage's score and the evidence beside it."""
+    best = min(found.hypotheses, key=lambda h: h.profile_cost) if found.hypotheses else None
+    score = refined.score if np.isfinite(refined.score) else None  # JSON has no NaN
+    return {
+        "score": score,
+        "flagged": score is not None and score > QUALITY_THRESHOLD,
+        "disagreement": refined.disagreement,
+        "change": refined.change,
+        "profile_cost": None if best is None else float(best.profile_cost),
+        "mrf_energy": float(found.mrf.energy),
+        "mrf_gap": float(found.mrf.gap),
+    }
 
 
 def _procrustes_medoid(shapes: np.ndarray) -> int:

@@ -12,6 +12,9 @@ Layout of a model folder::
     shape_model.npz   written by ActiveShapeModel.save (the model refining the landmarks);
                       since version 3
     frame.npz         written by ShapeFrame.save (the shape's own frame); since version 4
+    boundary/         written by BoundaryStage.save (stage.npz, classifier.npz and with
+                      auto-context context.npz: the regional stage); since version 5 (a
+                      model trained without the stage is written as version 4)
 
 The folder is built in a staging sibling and swapped into place (``atomic_folder``), so a
 failed save leaves no half-written model. Loading verifies the format version and every checksum
@@ -20,7 +23,7 @@ before anything is deserialised.
 A model folder is untrusted input: nothing on the load path uses pickle (``allow_pickle=False``
 on every ``np.load``; skops with an explicit list of trusted types), and every archive
 (``template.npz``, ``prior.npz``, ``orientation.npz``, ``shape_model.npz``,
-``detector/**/forests.npz`` or ``forests.skops``) is checked
+``detector/**/forests.npz`` or ``forests.skops``, ``boundary/*.npz``) is checked
 from its zip directory and ``.npy`` headers before it is unpacked
 (:func:`medseg.io._archive.check_archive`): an oversized, forged or malformed archive is refused
 with a :class:`ModelFileError`.
@@ -41,14 +44,16 @@ from medseg.errors import InputFileError, ModelFileError
 from medseg.frame import ShapeFrame
 from medseg.io import atomic_folder, check_format, load_arrays, save_arrays
 from medseg.io._archive import MAX_UNPACKED_BYTES, check_archive
+from medseg.segmenter._boundary import BoundaryStage
 from medseg.shape import ActiveShapeModel, OrientationPrior, TripletPrior
 
 FORMAT = "medseg-shape-prior-segmenter"
-FORMAT_VERSION = 4
+FORMAT_VERSION = 5
 #: versions this medseg reads: 1 lacks the handedness term (``orientation.npz``), 1 and 2
 #: the landmark refinement (``shape_model.npz`` and the ``refine_levels`` parameter), 1-3
-#: the shape's frame (``frame.npz``, ``frame_passes``)
-_READABLE_VERSIONS = (1, 2, 3, 4)
+#: the shape's frame (``frame.npz``, ``frame_passes``), 1-4 the regional stage
+#: (``boundary/``, ``boundary``)
+_READABLE_VERSIONS = (1, 2, 3, 4, 5)
 #: format version that introduced an optional file or parameter
 _SINCE = {
     "orientation.npz": 2,
@@ -58,6 +63,9 @@ _SINCE = {
     "frame.npz": 4,
     "frame_passes": 4,
     "augment_poses": 4,
+    "boundary": 5,
+    "boundary/stage.npz": 5,
+    "boundary/classifier.npz": 5,
 }
 _PARAMS = (
     "n_landmarks",
@@ -72,6 +80,7 @@ _PARAMS = (
     "refine_levels",
     "n_hypotheses",
     "frame_passes",
+    "boundary",
     "landmark_noise_mm",
     "n_noise_copies",
     "n_estimators",
@@ -82,7 +91,8 @@ _PARAMS = (
     "n_jobs",
 )
 MAX_MODEL_BYTES = 2 * 1024**3
-_ARCHIVES = ("template.npz", "prior.npz", "orientation.npz", "shape_model.npz", "frame.npz")
+_ARCHIVES = ("template.npz", "prior.npz", "orientation.npz", "shape_model.npz", "frame.npz",
+             "boundary/stage.npz", "boundary/classifier.npz")  # fmt: skip
 #: the detector's forests: arrays (detector format 2) or skops (format 1), at any depth
 #: (stage1/ of an auto-context detector holds its own)
 _DETECTOR_ARCHIVES = ("forests.npz", "forests.skops")
@@ -136,7 +146,10 @@ def save_model(model, path: Path) -> Path:
                 version = 3
                 if getattr(model, "frame_", None) is not None:
                     model.frame_.save(tmp / "frame.npz")
-                    version = 4
+                    version = 4  # a model without the regional stage is one of version 4
+                    if getattr(model, "boundary_", None) is not None:
+                        model.boundary_.save(tmp / "boundary")
+                        version = 5
         meta = {
             "format": FORMAT,
             "format_version": version,
@@ -217,6 +230,11 @@ def load_model(cls, path: Path):
         raise ModelFileError(f"{path / 'orientation.npz'} does not match the cliques of prior.npz")
     model.shape_model_ = _load_part(path, "shape_model.npz", version, ActiveShapeModel)
     model.frame_ = _load_part(path, "frame.npz", version, ShapeFrame)
+    model.boundary_ = None
+    if version >= _SINCE["boundary"]:
+        model.boundary_ = BoundaryStage.load(path / "boundary")
+    else:
+        model.boundary = False  # no regional stage: the shape-only label map
     if model.frame_ is not None and model.frame_.reference.shape != np.shape(model.landmarks_)[1:]:
         raise ModelFileError(f"{path / 'frame.npz'} does not match the landmarks of template.npz")
     if model.shape_model_ is not None and (
@@ -258,7 +276,8 @@ def _check_archives(path: Path, version: int) -> None:
         raise ModelFileError(
             f"{path} is missing detector/forests.npz; the model folder is incomplete"
         )
-    for file in forests:
+    context = path / "boundary" / "context.npz"  # with auto-context (BoundaryStage)
+    for file in forests + ([context] if version >= 5 and context.is_file() else []):
         total += check_archive(file)
     if total > MAX_UNPACKED_BYTES:
         raise ModelFileError(

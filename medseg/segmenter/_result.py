@@ -45,8 +45,13 @@ class Segmentation:
     Attributes
     ----------
     label : image
-        Label map (uint8, 1 = structure) in the input image's geometry, of the input's type
-        (SimpleITK image, or nibabel image when a nibabel image was given).
+        Label map (uint8) in the input image's geometry, of the input's type (SimpleITK
+        image, or nibabel image when a nibabel image was given): the training labels' own
+        values for a model of several labels (hippocampus: 1 anterior, 2 posterior), else
+        1 = structure. Refined by the regional stage when the model has one.
+    shape_label : image
+        The shape-only label map (the template warped onto ``landmarks``), before the
+        regional stage; the same as ``label`` without it.
     landmarks : (N, 3) float array, mm, (x, y, z)
         The landmarks found (the MRF's choice refined by the active shape model, see
         ``refine_levels``), in the input's physical space.
@@ -69,6 +74,14 @@ class Segmentation:
         With refinement: the MRF solutions that were refined, the first being the MRF's
         optimum (``mrf``), each labelling once; ``landmarks`` come from the one with the
         lowest profile cost. Empty without refinement.
+    quality : dict or None
+        With the regional stage: ``score`` (how many standard deviations beyond the
+        held-out training cases this case's disagreement between image and shape lies,
+        :class:`~medseg.segmenter.BoundaryStage`), ``flagged`` (``score`` above
+        :data:`~medseg.segmenter.QUALITY_THRESHOLD`: likely wrong), the two signals behind
+        it (``disagreement``, ``change``) and, for the record, ``profile_cost``,
+        ``mrf_energy`` and ``mrf_gap``. None without the stage; ``score`` None for a model
+        of too few training cases to compare with.
     frame_pose : Similarity or None
         With ``frame_passes``: the similarity from the input's physical space (mm) into the
         shape's frame in which the last pass ran (the result's landmarks, candidates and
@@ -87,6 +100,8 @@ class Segmentation:
     hypotheses: list = field(default_factory=list)
     image: sitk.Image | None = field(default=None, repr=False)
     frame_pose: Similarity | None = None
+    shape_label: Any = None
+    quality: dict | None = None
 
     def plot(self, *, axis: int = 0, index: int | None = None):
         """Image, label and overlay of one slice with the nearby landmarks (a matplotlib

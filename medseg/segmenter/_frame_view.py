@@ -1,0 +1,110 @@
+"""The image seen in the frame of some landmarks, and labels carried back from it.
+
+The regional stage (:mod:`medseg.segmenter._boundary`) works in the shape's own frame
+(:class:`medseg.frame.ShapeFrame`): the image resampled so that the landmarks found sit on
+the reference shape, and the template's labels warped onto them there, with their signed
+distances. What it decides there comes back to the input's exact grid through the signed
+distances of the labels, linearly interpolated, which keeps the boundary's sub-voxel
+position that nearest-neighbour resampling of the labels would lose.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import SimpleITK as sitk
+from scipy import ndimage
+
+from medseg.frame import ShapeFrame
+from medseg.geometry import Similarity
+from medseg.io import resample_affine
+from medseg.reconstruction import warp_labels
+
+__all__ = ["FrameView", "frame_view", "signed_distance", "to_input"]
+
+
+def signed_distance(mask: np.ndarray, spacing_zyx) -> np.ndarray:
+    """Signed distance (mm) to the boundary of ``mask``: negative inside, about +-half a
+    voxel on either side of the boundary."""
+    mask = np.asarray(mask, dtype=bool)
+    if not mask.any():
+        return np.full(mask.shape, 1e3, dtype=np.float32)
+    half = 0.5 * float(np.min(spacing_zyx))
+    outside = ndimage.distance_transform_edt(~mask, sampling=spacing_zyx)
+    inside = ndimage.distance_transform_edt(mask, sampling=spacing_zyx)
+    return np.where(mask, half - inside, outside - half).astype(np.float32)
+
+
+@dataclass
+class FrameView:
+    """An image seen in the frame of some landmarks, with the template warped onto them.
+
+    Attributes
+    ----------
+    pose : Similarity
+        The input's mm into the frame's mm.
+    upright : SimpleITK image
+        The image on the frame's grid.
+    shape : (Z, Y, X) uint8 array
+        The warped template's labels on that grid.
+    distances : (1 + K, Z, Y, X) float32 array, mm
+        Signed distances to the union, then to each of the K label values.
+    values : tuple of int
+        The label values (1 for a single label).
+    """
+
+    pose: Similarity
+    upright: sitk.Image
+    shape: np.ndarray
+    distances: np.ndarray
+    values: tuple
+
+    def domain(self, band_mm: float) -> np.ndarray:
+        """The voxels the cut decides: within ``band_mm`` outside the union, and inside."""
+        return self.distances[0] <= band_mm
+
+
+def frame_view(
+    frame: ShapeFrame,
+    template_labels: sitk.Image,
+    template_landmarks: np.ndarray,
+    image: sitk.Image,
+    landmarks: np.ndarray,
+) -> FrameView:
+    """``image`` resampled into the frame of ``landmarks``, the template warped there."""
+    pose = frame.pose(landmarks)
+    upright = frame.resample(image, pose)
+    shape = sitk.GetArrayFromImage(
+        warp_labels(template_labels, template_landmarks, pose(landmarks), upright)
+    )
+    values = tuple(int(v) for v in np.unique(sitk.GetArrayViewFromImage(template_labels)) if v)
+    spacing = np.asarray(upright.GetSpacing(), dtype=float)[::-1]
+    masks = [shape > 0] + ([shape == v for v in values] if len(values) > 1 else [shape > 0])
+    distances = np.stack([signed_distance(m, spacing) for m in masks])
+    return FrameView(pose, upright, shape, distances, values)
+
+
+def to_input(view: FrameView, labels: np.ndarray, image: sitk.Image) -> sitk.Image:
+    """Frame labels onto ``image``'s grid, through their linearly resampled signed distances."""
+    spacing = np.asarray(view.upright.GetSpacing(), dtype=float)[::-1]
+    pose = view.pose  # the frame back to the input: x = R^T (y - t) / s
+    matrix = pose.rotation.T / pose.scale
+    offset = -(pose.rotation.T @ pose.translation) / pose.scale
+
+    def moved(mask: np.ndarray) -> np.ndarray:
+        field = sitk.GetImageFromArray(signed_distance(mask, spacing))
+        field.CopyInformation(view.upright)
+        out = resample_affine(field, matrix, offset, image, fill="border")
+        return sitk.GetArrayFromImage(out)
+
+    union = moved(labels > 0) < 0
+    out = np.zeros(union.shape, dtype=np.uint8)
+    if len(view.values) == 1:
+        out[union] = view.values[0]
+    else:
+        distance = np.stack([moved(labels == v)[union] for v in view.values])
+        out[union] = np.asarray(view.values, dtype=np.uint8)[np.argmin(distance, axis=0)]
+    result = sitk.GetImageFromArray(out)
+    result.CopyInformation(image)
+    return result
