@@ -15,6 +15,7 @@ multi-atlas baseline) gets NaN landmark errors.
 
 from __future__ import annotations
 
+import copy as _copy
 import inspect
 import math
 import sys
@@ -24,6 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import SimpleITK as sitk
 
 from medseg.errors import MedsegError
 from medseg.evaluation.methods import MethodSpec
@@ -31,7 +33,7 @@ from medseg.evaluation.metrics import landmark_errors, score_segmentation
 from medseg.evaluation.perturbation import UNPERTURBED, perturb_condition
 from medseg.evaluation.references import fold_landmarks
 from medseg.evaluation.results import prediction_path, result_key
-from medseg.io import read_image, select_labels, write_image
+from medseg.io import label_values, read_image, write_image
 
 __all__ = ["FoldTask", "run_fold"]
 
@@ -62,6 +64,7 @@ _FAILED = {
     "landmark_error_mm": math.nan,
     "landmark_error_vox": math.nan,
     "gap": math.nan,
+    "dice_by_label": "",
 }
 
 
@@ -72,9 +75,37 @@ def _perturbation_seed(seed: int, case_id: str, condition: str) -> int:
     return int(np.random.SeedSequence(key).generate_state(1)[0])
 
 
-def _score(result, mask, reference_landmarks, image) -> dict:
+def _union(label: sitk.Image) -> sitk.Image:
+    """The binary union of a label map's non-zero labels (its outer boundary only)."""
+    return sitk.Cast(label > 0, sitk.sitkUInt8)
+
+
+def _dice_by_label(label: sitk.Image, reference: sitk.Image) -> str:
+    """``"1:0.8912;2:0.8801"``: the Dice of each value of a reference of several labels."""
+    a, b = sitk.GetArrayViewFromImage(label), sitk.GetArrayViewFromImage(reference)
+    values = [int(v) for v in np.unique(b) if v]
+    if len(values) < 2:
+        return ""
+    parts = []
+    for v in values:
+        total = int((a == v).sum()) + int((b == v).sum())
+        parts.append(f"{v}:{2.0 * float(np.logical_and(a == v, b == v).sum()) / total:.6f}")
+    return ";".join(parts)
+
+
+def _relabelled(result, attribute: str):
+    """A shallow copy of ``result`` whose ``label`` is its ``attribute`` (None if absent)."""
+    label = None if result is None else getattr(result, attribute, None)
+    if label is None:
+        return None
+    out = _copy.copy(result)
+    out.label = label
+    return out
+
+
+def _score(result, labels, reference_landmarks, image) -> dict:
     label = read_image(result.label)
-    scores = score_segmentation(label, mask)
+    scores = score_segmentation(_union(label), _union(labels))
     est = None if result.landmarks is None else np.asarray(result.landmarks, dtype=float)
     if (
         est is not None
@@ -94,6 +125,7 @@ def _score(result, mask, reference_landmarks, image) -> dict:
         "landmark_error_mm": lm_mm,
         "landmark_error_vox": lm_vox,
         "gap": gap,
+        "dice_by_label": _dice_by_label(label, labels),
     }
 
 
@@ -106,8 +138,9 @@ def _save_prediction(result, image, folder: Path, method: str, case_id: str) -> 
 def _test_inputs(task: FoldTask, references) -> list[tuple]:
     """The test inputs, original and perturbed, shared by all methods.
 
-    One ``(case, condition, change, image, mask, reference_landmarks)`` per test case and
-    condition that some method still needs.
+    One ``(case, condition, change, image, labels, reference_landmarks)`` per test case and
+    condition that some method still needs (``labels``: the values of ``task.labels``,
+    :func:`medseg.io.label_values`).
     """
     needed = {(key[2], key[3]) for key in task.todo}
     inputs = []
@@ -115,15 +148,15 @@ def _test_inputs(task: FoldTask, references) -> list[tuple]:
         if not any((case.case_id, c) in needed for c in task.conditions):
             continue
         image = case.load_image()
-        mask = select_labels(case.load_label(), task.labels)
+        labels = label_values(case.load_label(), task.labels)
         for condition in task.conditions:
             if (case.case_id, condition) not in needed:
                 continue
             seed = _perturbation_seed(task.run_seed, case.case_id, condition)
-            moved, moved_mask, moved_lm, change, _ = perturb_condition(
-                condition, image, mask, ref_lm, random_state=seed
+            moved, moved_labels, moved_lm, change, _ = perturb_condition(
+                condition, image, labels, ref_lm, random_state=seed
             )
-            inputs.append((case, condition, change, moved, moved_mask, moved_lm))
+            inputs.append((case, condition, change, moved, moved_labels, moved_lm))
     return inputs
 
 
@@ -149,11 +182,15 @@ def run_fold(task: FoldTask, on_row: Callable[[dict], None] | None = None) -> li
     )
     inputs = _test_inputs(task, references)
     for spec in task.specs:
+
+        def todo(name, item):
+            return result_key(name, task.fold, item[0].case_id, item[1]) in task.todo
+
         wanted = [
             (name, kwargs, item)
             for item in inputs
             for name, kwargs in spec.variants.items()
-            if result_key(name, task.fold, item[0].case_id, item[1]) in task.todo
+            if todo(name, item) or any(todo(d, item) for d in spec.derived_from(name))
         ]
         if not wanted:
             continue
@@ -165,7 +202,7 @@ def run_fold(task: FoldTask, on_row: Callable[[dict], None] | None = None) -> li
         shares = "candidates" in inspect.signature(estimator.segment).parameters
         detected: dict[int, tuple] = {}
         for name, kwargs, item in wanted:
-            case, condition, change, image, mask, ref_lm = item
+            case, condition, change, image, labels, ref_lm = item
             extra, reused = {}, 0.0
             if shares and id(item) in detected:
                 extra["candidates"], reused = detected[id(item)]
@@ -181,21 +218,31 @@ def run_fold(task: FoldTask, on_row: Callable[[dict], None] | None = None) -> li
             seconds = time.perf_counter() - t0 + reused
             if shares and id(item) not in detected and hasattr(result, "candidates"):
                 detected[id(item)] = (result.candidates, result.timings.get("detection", 0.0))
-            row = {
-                "method": name,
-                "fold": task.fold,
-                "case": case.case_id,
-                "subject": str(case.subject),
-                "perturbation": condition,
-                "perturbation_deg": float(change.angle_deg),
-                "scale": float(change.scale),
-                **(_FAILED if result is None else _score(result, mask, ref_lm, image)),
-                "seconds": seconds,
-                "fit_seconds": fit_seconds,
-            }
-            if result is not None and task.predictions_dir is not None and condition == UNPERTURBED:
-                _save_prediction(result, image, Path(task.predictions_dir), name, case.case_id)
-            rows.append(row)
-            if on_row is not None:
-                on_row(row)
+            outputs = [(name, result)] if todo(name, item) else []
+            for derived, attribute in spec.derived_from(name).items():
+                if todo(derived, item):
+                    outputs.append((derived, _relabelled(result, attribute)))
+            for method, output in outputs:
+                row = {
+                    "method": method,
+                    "fold": task.fold,
+                    "case": case.case_id,
+                    "subject": str(case.subject),
+                    "perturbation": condition,
+                    "perturbation_deg": float(change.angle_deg),
+                    "scale": float(change.scale),
+                    **(_FAILED if output is None else _score(output, labels, ref_lm, image)),
+                    "seconds": seconds,
+                    "fit_seconds": fit_seconds,
+                }
+                if (
+                    output is not None
+                    and task.predictions_dir is not None
+                    and condition == UNPERTURBED
+                ):
+                    folder = Path(task.predictions_dir)
+                    _save_prediction(output, image, folder, method, case.case_id)
+                rows.append(row)
+                if on_row is not None:
+                    on_row(row)
     return rows

@@ -4,7 +4,9 @@ A :class:`MethodSpec` is one estimator fitted once per fold (``fit(cohort)``) an
 named *variants* segmented from that fitted estimator (``segment(image, **kwargs)``). The
 shape-prior segmenter gives two variants from one fit: the method itself
 (``use_prior=True``) and the detection-only baseline (``use_prior=False``), so both see the
-same forests, folds and seed.
+same forests, folds and seed. A variant's result can also be scored through another of its
+label maps, as a *derived* method at no extra cost: ``shape_only`` is the shape prior's
+label map before its regional stage (``Segmentation.shape_label``).
 
 Any estimator with ``fit(cohort) -> self`` and ``segment(image, **kwargs)`` returning an
 object with ``.label`` (a SimpleITK image on the input's grid) and ``.landmarks`` ((N, 3) mm,
@@ -30,11 +32,11 @@ __all__ = [
 ]
 
 #: Names accepted by :func:`resolve_methods` (and ``medseg-evaluate --methods``).
-METHOD_NAMES = ("shape_prior", "detection", "asm", "multi_atlas")
+METHOD_NAMES = ("shape_prior", "shape_only", "detection", "asm", "asm_boundary", "multi_atlas")
 #: The methods of a default run. ``multi_atlas`` is left out: it registers its 9 atlases to
 #: every test input (the unperturbed case and each perturbed copy), about 5 s per input on
 #: hippocampus crops, where the others share one fitted model and one detection.
-DEFAULT_METHODS = ("shape_prior", "detection", "asm")
+DEFAULT_METHODS = ("shape_prior", "shape_only", "detection", "asm")
 #: Conditions of the default pose-perturbation study (besides the unperturbed case): one of
 #: each kind, rotation only, scale only, and the random similarity of the issue's protocol
 #: (as many perturbed copies as the earlier default of three angles, so about the same cost).
@@ -56,15 +58,23 @@ class MethodSpec:
         Constructor keyword arguments (besides ``random_state``).
     variants : dict of str to dict
         Method name (a column value of the results) to the ``segment`` keyword arguments.
+    derived : dict of str to (str, str)
+        Method name to ``(variant, attribute)``: the variant's result scored with its
+        ``attribute`` as the label map (e.g. ``("shape_prior", "shape_label")``).
     """
 
     estimator: Callable[..., Any]
     params: dict = field(default_factory=dict)
     variants: dict = field(default_factory=dict)
+    derived: dict = field(default_factory=dict)
 
     @property
     def names(self) -> tuple[str, ...]:
-        return tuple(self.variants)
+        return tuple(self.variants) + tuple(self.derived)
+
+    def derived_from(self, variant: str) -> dict[str, str]:
+        """The derived methods of ``variant``: name to the attribute holding their label."""
+        return {name: attr for name, (source, attr) in self.derived.items() if source == variant}
 
     def build(self, seed: int):
         """A fresh, unfitted estimator for one fold."""
@@ -84,10 +94,13 @@ def default_methods(
 
     Parameters
     ----------
-    names : iterable of {"shape_prior", "detection", "asm", "multi_atlas"}
-        "shape_prior" is :class:`medseg.segmenter.ShapePriorSegmenter`; "detection" the same
+    names : iterable of {"shape_prior", "shape_only", "detection", "asm", "multi_atlas"}
+        "shape_prior" is :class:`medseg.segmenter.ShapePriorSegmenter`; "shape_only" its
+        label map before the regional stage (the template warped onto its landmarks, from
+        the same segmentation, which it implies); "detection" the same
         fitted model with ``use_prior=False`` (each landmark at its best candidate, same
-        TPS); "asm" the active shape model baseline of :mod:`medseg.evaluation.baselines.asm`;
+        TPS); "asm" the active shape model baseline of :mod:`medseg.evaluation.baselines.asm`,
+        "asm_boundary" the same with the segmenter's regional stage (one fit gives both);
         "multi_atlas" the affine multi-atlas registration with majority voting of
         :mod:`medseg.evaluation.baselines.multi_atlas` (no landmarks).
     labels : sequence of int
@@ -104,9 +117,11 @@ def default_methods(
             f"unknown method(s) {unknown or names!r}: choose among {', '.join(METHOD_NAMES)}"
         )
     specs = []
-    seg_variants = {}
-    if "shape_prior" in names:
+    seg_variants, derived = {}, {}
+    if "shape_prior" in names or "shape_only" in names:
         seg_variants["shape_prior"] = {"use_prior": True}
+    if "shape_only" in names:
+        derived["shape_only"] = ("shape_prior", "shape_label")
     if "detection" in names:
         seg_variants["detection"] = {"use_prior": False}
     if seg_variants:
@@ -114,13 +129,18 @@ def default_methods(
 
         params = {"n_landmarks": n_landmarks, "labels": tuple(labels)}
         params.update(segmenter_params or {})
-        specs.append(MethodSpec(ShapePriorSegmenter, params, seg_variants))
-    if "asm" in names:
+        specs.append(MethodSpec(ShapePriorSegmenter, params, seg_variants, derived))
+    if "asm" in names or "asm_boundary" in names:
         from medseg.evaluation.baselines import ASMBaseline
 
         params = {"labels": tuple(labels)}
         params.update(asm_params or {})
-        specs.append(MethodSpec(ASMBaseline, params, {"asm": {}}))
+        if "asm_boundary" in names:  # one fit: the refined map, and before it the plain ASM's
+            params["boundary"] = True
+            derived = {"asm": ("asm_boundary", "shape_label")} if "asm" in names else {}
+            specs.append(MethodSpec(ASMBaseline, params, {"asm_boundary": {}}, derived))
+        else:
+            specs.append(MethodSpec(ASMBaseline, params, {"asm": {}}))
     if "multi_atlas" in names:
         from medseg.evaluation.baselines import MultiAtlasBaseline
 

@@ -126,7 +126,25 @@ def summarise(rows: list[dict]) -> dict:
             for k in (*_PERTURBATION_SCORES, "perturbation_deg", "scale")
         } | {"dice_loss": _nan_stats(losses)["mean"], "n": len(rs)}
         perturbation[m][condition]["angle_deg"] = perturbation[m][condition].pop("perturbation_deg")
-    return {"methods": methods, "stats": stats, "perturbation": dict(perturbation)}
+    return {
+        "methods": methods,
+        "stats": stats,
+        "perturbation": dict(perturbation),
+        "by_label": _by_label(base),
+    }
+
+
+def _by_label(rows: list[dict]) -> dict:
+    """``{method: {label value: mean Dice}}`` from the ``dice_by_label`` column (methods
+    whose reference has a single label are left out)."""
+    values: dict = defaultdict(lambda: defaultdict(list))
+    for r in rows:
+        for part in filter(None, str(r.get("dice_by_label", "")).split(";")):
+            label, _, dice = part.partition(":")
+            values[r["method"]][int(label)].append(float(dice))
+    return {
+        m: {v: _nan_stats(d)["mean"] for v, d in sorted(per.items())} for m, per in values.items()
+    }
 
 
 def _condition_groups(summary: dict) -> tuple[list, list, list]:
@@ -188,8 +206,25 @@ def _markdown(summary: dict, title: str) -> str:
             other = stats[m]["landmark_error_mm"]["mean"]
             ratio = other / ref if ref and np.isfinite(ref) else math.nan
             lines.append(f"- `{m}`: {_fmt(ratio, 2)} x")
+    lines += _label_table(summary)
     lines += _perturbation_tables(summary)
     return "\n".join(lines) + "\n"
+
+
+def _label_table(summary: dict) -> list[str]:
+    """Mean Dice of each label of the reference, per method (references of several labels)."""
+    by_label = summary.get("by_label") or {}
+    values = sorted({v for per in by_label.values() for v in per})
+    if not values:
+        return []
+    lines = ["", "Dice per label (unperturbed, mean over cases):", ""]
+    lines.append("| method | " + " | ".join(f"label {v}" for v in values) + " |")
+    lines.append("|---|" + "---:|" * len(values))
+    for m in summary["methods"]:
+        if m in by_label:
+            cells = [_fmt(by_label[m].get(v, math.nan)) for v in values]
+            lines.append(f"| {m} | " + " | ".join(cells) + " |")
+    return lines
 
 
 def _perturbation_tables(summary: dict) -> list[str]:

@@ -54,10 +54,16 @@ COLUMNS = (
     "perturbation_deg",
     "scale",
     *SCORES,
+    "dice_by_label",
     "seconds",
     "fit_seconds",
 )
-_FLOAT_COLUMNS = COLUMNS[COLUMNS.index("perturbation_deg") :]
+#: Columns a file of an earlier version may lack, and the value their rows then take:
+#: ``dice_by_label``, the Dice of each label of a reference of several ("1:0.89;2:0.87").
+_OPTIONAL = {"dice_by_label": ""}
+_FLOAT_COLUMNS = tuple(
+    c for c in COLUMNS[COLUMNS.index("perturbation_deg") :] if c not in _OPTIONAL
+)
 
 
 def _format(value) -> str:
@@ -67,6 +73,7 @@ def _format(value) -> str:
 
 
 def _parse(row: dict) -> dict | None:
+    row = {**_OPTIONAL, **{k: v for k, v in row.items() if v is not None or k not in _OPTIONAL}}
     if set(COLUMNS) - set(row) or any(row[c] is None for c in COLUMNS):
         return None
     try:
@@ -97,7 +104,9 @@ def read_results(path: str | os.PathLike) -> list[dict]:
         return []
     with path.open(newline="", encoding="utf-8") as fh:
         reader = csv.DictReader(fh)
-        missing = [c for c in COLUMNS if c not in (reader.fieldnames or COLUMNS)]
+        missing = [
+            c for c in COLUMNS if c not in (reader.fieldnames or COLUMNS) and c not in _OPTIONAL
+        ]
         if missing:
             raise InputFileError(
                 f"{path} lacks the column(s) {', '.join(missing)}: it was written by another "

@@ -47,6 +47,8 @@ def _method_config(specs: Sequence[MethodSpec]) -> dict:
                 "params": params,
                 "segment": repr(sorted(kwargs.items())),
             }
+        for name, (variant, attribute) in spec.derived.items():
+            out[name] = {**out[variant], "label": attribute}
     return out
 
 

@@ -174,3 +174,19 @@ def test_active_shape_model_save_load_round_trip(phantom, shape_model, tmp_path)
         ActiveShapeModel.load(tmp_path / "broken.npz")
     with pytest.raises(NotFittedError):
         ActiveShapeModel().save(tmp_path / "unfitted.npz")
+
+
+def test_asm_with_the_regional_stage_refines_its_own_shape_only_map(phantom):
+    train, test = phantom[list(range(8))], phantom[8]
+    asm = ASMBaseline(boundary=True, random_state=0).fit(train)
+    assert asm.boundary_ is not None and asm.frame_ is not None
+    result = asm.segment(test.load_image())
+    plain = ASMBaseline().fit(train).segment(test.load_image())
+    # the shape-only map is the plain ASM's; the refined one its own, on the same grid
+    np.testing.assert_array_equal(
+        sitk.GetArrayFromImage(result.shape_label), sitk.GetArrayFromImage(plain.label)
+    )
+    assert result.label.GetSize() == result.shape_label.GetSize()
+    assert "boundary" in result.timings
+    reference = select_labels(test.load_label(), (1,))
+    assert dice(result.label, reference) > 0.5

@@ -566,3 +566,48 @@ def test_transferred_reference_landmarks_match_the_phantom_truth():
     # Exact ground-truth correspondence exists on the phantom; 1 mm voxels, ~6 mm between
     # neighbouring landmarks: a mirrored or rigid-only transfer is several mm off.
     assert error.mean() < 2.0
+
+
+class TwoLabelMethod(ThresholdMethod):
+    """Fake method of a two-label structure: the thresholded ball, label 2 beyond the
+    middle slice; its ``shape_label`` the whole ball as label 1 (no second label)."""
+
+    def segment(self, image, *, offset: float = 0.0):
+        result = super().segment(image, offset=offset)
+        inside = sitk.GetArrayFromImage(result.label)
+        upper = np.arange(inside.shape[0])[:, None, None] > SIZE // 2
+        label = sitk.GetImageFromArray((inside * (1 + upper)).astype(np.uint8))
+        label.CopyInformation(image)
+        result.shape_label, result.label = result.label, label
+        return result
+
+
+def test_labels_of_a_structure_of_two_are_scored_each_and_a_derived_map_costs_no_fit(tmp_path):
+    from medseg.evaluation.report import summarise
+
+    cases = []
+    for case in tiny_cohort(n_subjects=10, per_subject=1):
+        label = sitk.GetArrayFromImage(case.load_label())
+        centre = np.argwhere(label).mean(axis=0)[0]
+        upper = np.arange(SIZE)[:, None, None] > centre
+        two = sitk.GetImageFromArray((label * (1 + upper)).astype(np.uint8))
+        two.CopyInformation(case.load_label())
+        cases.append(Case(case.case_id, case.subject, case.load_image(), two, case.landmarks))
+    cohort = Cohort(cases=cases, labels={"background": 0, "a": 1, "b": 2}, name="halves")
+    log = tmp_path / "fits.log"
+    spec = MethodSpec(
+        TwoLabelMethod, {"log": str(log)}, {"two": {}}, {"plain": ("two", "shape_label")}
+    )
+    rows = read_results(run_folds(cohort, (spec,), tmp_path / "run", folds=2, labels=(1, 2)))
+    assert len(log.read_text().splitlines()) == 2  # one fit per fold for both methods
+    by = _by_key(rows)
+    for case in cohort:
+        fold = next(f for (_, f, k, _) in by if k == case.case_id)
+        two, plain = (by[(m, fold, case.case_id, "acquired")] for m in ("two", "plain"))
+        # the same union (the thresholded ball), scored alike; per label, only "two" has 2
+        assert two["dice"] == plain["dice"] == 1.0 and two["hd95"] == plain["hd95"] == 0.0
+        parts = dict(p.split(":") for p in two["dice_by_label"].split(";"))
+        assert set(parts) == {"1", "2"} and all(float(d) > 0.8 for d in parts.values())
+        assert dict(p.split(":") for p in plain["dice_by_label"].split(";"))["2"] == "0.000000"
+    by_label = summarise(rows)["by_label"]
+    assert by_label["two"][2] > 0.8 and by_label["plain"][2] == 0.0

@@ -5,8 +5,10 @@ The model itself (point distribution model, profile models, multi-resolution sea
 landmarks. The baseline starts the search where a user would, with no knowledge of the
 pose: the mean shape at the physical centre of the image, in the mean training orientation
 and size. The label map comes from the same thin-plate-spline reconstruction as the
-segmenter (:func:`medseg.reconstruction.warp_mask`), with the training case closest to the
-mean shape as template.
+segmenter (:func:`medseg.reconstruction.warp_labels`), with the training case closest to
+the mean shape as template; with ``boundary=True`` the segmenter's regional stage
+(:class:`medseg.segmenter.BoundaryStage`, in the frame of the ASM's landmarks) refines it,
+so that the two methods can be compared with the same last stage.
 """
 
 from __future__ import annotations
@@ -20,8 +22,10 @@ import SimpleITK as sitk
 from tqdm.auto import tqdm
 
 from medseg.errors import CohortError, NotFittedError
-from medseg.io import read_image, select_labels
-from medseg.reconstruction import warp_mask
+from medseg.frame import ShapeFrame
+from medseg.io import label_values, read_image
+from medseg.reconstruction import warp_labels
+from medseg.segmenter import BoundaryStage
 from medseg.shape import ActiveShapeModel
 
 __all__ = ["ASMBaseline", "ASMResult"]
@@ -37,7 +41,10 @@ class ASMResult:
     Attributes
     ----------
     label : SimpleITK image, uint8
-        The template carried onto ``landmarks`` (TPS), on the input's grid.
+        The template carried onto ``landmarks`` (TPS), on the input's grid, refined by the
+        regional stage with ``boundary=True``.
+    shape_label : SimpleITK image, uint8
+        The template carried onto ``landmarks``, before the regional stage.
     landmarks : (N, 3) float array, mm
     shape_parameters : (K,) float array
         Final mode weights ``b``.
@@ -57,6 +64,7 @@ class ASMResult:
     n_iter: list
     mrf: None = None
     timings: dict = field(default_factory=dict)
+    shape_label: sitk.Image | None = None
 
 
 class ASMBaseline:
@@ -70,14 +78,20 @@ class ASMBaseline:
         Those of :class:`medseg.shape.ActiveShapeModel`.
     smoothing : float, default 0.0
         Thin-plate spline smoothing of the reconstruction.
-    random_state : ignored
-        Accepted for a uniform interface; nothing in the ASM is random.
+    boundary : bool, default False
+        Refine the label map with the segmenter's regional stage, trained on the same
+        cases (in the frame of the ASM's landmarks).
+    random_state : int, RandomState or None
+        Seeds the regional stage; nothing in the ASM itself is random.
 
     Attributes
     ----------
     model_ : medseg.shape.ActiveShapeModel
     template_mask_ : SimpleITK image
     template_landmarks_ : (N, 3) float array, mm
+    frame_ : ShapeFrame or None
+    boundary_ : BoundaryStage or None
+        With ``boundary=True``.
     """
 
     def __init__(
@@ -92,6 +106,7 @@ class ASMBaseline:
         n_levels: int = 3,
         max_iter: int = 20,
         smoothing: float = 0.0,
+        boundary: bool = False,
         random_state=None,
     ):
         self.labels = labels
@@ -103,6 +118,7 @@ class ASMBaseline:
         self.n_levels = n_levels
         self.max_iter = max_iter
         self.smoothing = smoothing
+        self.boundary = boundary
         self.random_state = random_state
 
     def fit(self, cohort, *, progress: bool = False) -> ASMBaseline:
@@ -132,8 +148,19 @@ class ASMBaseline:
             **{name: getattr(self, name) for name in _ASM_PARAMETERS}
         ).fit(np.asarray(shapes) if shapes else np.empty((0, 0, 3)), images, progress=progress)
         ref = self.model_.closest_to_mean_
-        self.template_mask_ = select_labels(cohort[ref].load_label(), self.labels)
+        self.template_mask_ = label_values(cohort[ref].load_label(), self.labels)
         self.template_landmarks_ = shapes[ref].copy()
+        self.frame_ = self.boundary_ = None
+        if self.boundary:
+            self.frame_ = ShapeFrame.fit(np.asarray(shapes), images)
+            self.boundary_ = BoundaryStage(random_state=self.random_state).fit(
+                self.frame_,
+                self.template_mask_,
+                self.template_landmarks_,
+                images,
+                [label_values(case.load_label(), self.labels) for case in cohort],
+                np.asarray(shapes),
+            )
         return self
 
     def segment(self, image, **_ignored) -> ASMResult:
@@ -145,7 +172,7 @@ class ASMBaseline:
         found = self.model_.search(image)
         timings = {"search": time.perf_counter() - t_start}
         t0 = time.perf_counter()
-        label = warp_mask(
+        shape_label = warp_labels(
             self.template_mask_,
             self.template_landmarks_,
             found.landmarks,
@@ -153,8 +180,16 @@ class ASMBaseline:
             smoothing=self.smoothing,
         )
         timings["reconstruction"] = time.perf_counter() - t0
+        label = shape_label
+        if self.boundary_ is not None:
+            t0 = time.perf_counter()
+            label = self.boundary_.refine(
+                self.frame_, self.template_mask_, self.template_landmarks_, image, found.landmarks
+            ).label
+            timings["boundary"] = time.perf_counter() - t0
         return ASMResult(
             label=label,
+            shape_label=shape_label,
             landmarks=found.landmarks,
             shape_parameters=found.shape_parameters,
             pose=found.pose,
