@@ -13,6 +13,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -87,9 +88,11 @@ def _segment_processes(setup: Path, runs: list[tuple[Path, Path]]) -> None:
 
 def _assert_equal_to_serial(folder: Path, serial: Path, names: list[str]) -> None:
     # exactly the expected files: no temporary folder or half-written file left behind
-    expected = sorted([f"{n}.nii.gz" for n in names] + [f"{n}.csv" for n in names])
+    expected = sorted(f"{n}{ext}" for n in names for ext in (".nii.gz", ".csv", ".quality.json"))
     assert sorted(p.name for p in folder.iterdir()) == expected
     for name in names:
+        got = json.loads((folder / f"{name}.quality.json").read_text(encoding="utf-8"))
+        assert got == json.loads((serial / f"{name}.quality.json").read_text(encoding="utf-8"))
         got, ref = read_image(folder / f"{name}.nii.gz"), read_image(serial / f"{name}.nii.gz")
         assert got.GetSize() == ref.GetSize() and got.GetOrigin() == ref.GetOrigin()
         assert got.GetSpacing() == ref.GetSpacing() and got.GetDirection() == ref.GetDirection()

@@ -165,7 +165,8 @@ def _as_older_version(saved: Path, folder: Path, version: int) -> Path:
     """A copy of a saved model as medseg wrote it before format ``version + 1``."""
     old = Path(shutil.copytree(saved, folder))
     meta = json.loads((old / "model.json").read_text(encoding="utf-8"))
-    dropped = {4: (["boundary/stage.npz", "boundary/classifier.npz"], ["boundary"])}
+    stage = sorted(str(p.relative_to(saved)) for p in (saved / "boundary").iterdir())
+    dropped = {4: (stage, ["boundary"])}
     dropped[3] = (dropped[4][0] + ["frame.npz"], dropped[4][1] + ["frame_passes", "augment_poses"])
     dropped[2] = (
         dropped[3][0] + ["shape_model.npz"],
