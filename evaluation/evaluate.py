@@ -93,12 +93,13 @@ def run_evaluation(
         are kept and not recomputed.
     folds : "loo" or int, default "loo"
         Leave-one-subject-out, or k-fold grouped by subject.
-    methods : iterable of str or MethodSpec, default ("shape_prior", "detection", "asm")
-        The method, its detection-only baseline (same fitted model, ``use_prior=False``)
-        and the active shape model; ``"multi_atlas"`` adds the multi-atlas registration
-        baseline (:mod:`medseg.evaluation.baselines.multi_atlas`; not in the default, it
-        registers 9 atlases per test input); :class:`MethodSpec` objects add other
-        estimators.
+    methods : iterable of str or MethodSpec, default :data:`DEFAULT_METHODS`
+        The method, its label map before the regional stage (``shape_only``), its
+        detection-only baseline (same fitted model, ``use_prior=False``) and the active
+        shape model (``asm_boundary`` adds it with the regional stage); ``"multi_atlas"``
+        adds the multi-atlas registration baseline
+        (:mod:`medseg.evaluation.baselines.multi_atlas`; not in the default, it registers
+        9 atlases per test input); :class:`MethodSpec` objects add other estimators.
     labels : sequence of int, default (1,)
         Labels forming the structure (their union), e.g. ``(1, 2)`` for the hippocampus.
     n_landmarks : int, optional
