@@ -233,6 +233,12 @@ def load_model(cls, path: Path):
     model.boundary_ = None
     if version >= _SINCE["boundary"]:
         model.boundary_ = BoundaryStage.load(path / "boundary")
+        template_values = tuple(int(v) for v in np.unique(npz["mask"]) if v)
+        if model.boundary_.values_ != template_values:
+            raise ModelFileError(
+                f"{path / 'boundary'} labels {model.boundary_.values_} do not match the "
+                f"template's {template_values}"
+            )
     else:
         model.boundary = False  # no regional stage: the shape-only label map
     if model.frame_ is not None and model.frame_.reference.shape != np.shape(model.landmarks_)[1:]:
