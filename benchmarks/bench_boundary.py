@@ -39,7 +39,7 @@ import SimpleITK as sitk
 
 from medseg.correspondence import transfer_landmarks
 from medseg.datasets import load_cohort
-from medseg.evaluation.metrics import score_segmentation
+from medseg.evaluation.metrics import dice_per_label, score_segmentation
 from medseg.evaluation.perturbation import UNPERTURBED, perturb_condition
 from medseg.io import label_values
 from medseg.reconstruction import warp_labels
@@ -52,14 +52,9 @@ LABELS = (1, 2)
 
 
 def _scores(label: sitk.Image, truth: sitk.Image) -> dict:
-    union = score_segmentation(sitk.Cast(label > 0, sitk.sitkUInt8), truth > 0)
-    a, b = sitk.GetArrayViewFromImage(label), sitk.GetArrayViewFromImage(truth)
-    out = {"dice": union.dice, "hd95": union.hd95}
-    for v in LABELS:
-        out[f"dice{v}"] = (
-            2.0 * float(((a == v) & (b == v)).sum()) / float((a == v).sum() + (b == v).sum())
-        )
-    return out
+    union = score_segmentation(label, truth)  # of the union
+    per_label = dice_per_label(label, truth)
+    return {"dice": union.dice, "hd95": union.hd95} | {f"dice{v}": per_label[v] for v in LABELS}
 
 
 def _summary(rows: list[dict], condition: str) -> None:

@@ -29,7 +29,7 @@ import SimpleITK as sitk
 
 from medseg.errors import MedsegError
 from medseg.evaluation.methods import MethodSpec
-from medseg.evaluation.metrics import landmark_errors, score_segmentation
+from medseg.evaluation.metrics import dice_per_label, landmark_errors, score_segmentation
 from medseg.evaluation.perturbation import UNPERTURBED, perturb_condition
 from medseg.evaluation.references import fold_landmarks
 from medseg.evaluation.results import prediction_path, result_key
@@ -75,22 +75,10 @@ def _perturbation_seed(seed: int, case_id: str, condition: str) -> int:
     return int(np.random.SeedSequence(key).generate_state(1)[0])
 
 
-def _union(label: sitk.Image) -> sitk.Image:
-    """The binary union of a label map's non-zero labels (its outer boundary only)."""
-    return sitk.Cast(label > 0, sitk.sitkUInt8)
-
-
 def _dice_by_label(label: sitk.Image, reference: sitk.Image) -> str:
     """``"1:0.8912;2:0.8801"``: the Dice of each value of a reference of several labels."""
-    a, b = sitk.GetArrayViewFromImage(label), sitk.GetArrayViewFromImage(reference)
-    values = [int(v) for v in np.unique(b) if v]
-    if len(values) < 2:
-        return ""
-    parts = []
-    for v in values:
-        total = int((a == v).sum()) + int((b == v).sum())
-        parts.append(f"{v}:{2.0 * float(np.logical_and(a == v, b == v).sum()) / total:.6f}")
-    return ";".join(parts)
+    scores = dice_per_label(label, reference)
+    return ";".join(f"{v}:{d:.6f}" for v, d in scores.items()) if len(scores) > 1 else ""
 
 
 def _relabelled(result, attribute: str):
@@ -105,7 +93,7 @@ def _relabelled(result, attribute: str):
 
 def _score(result, labels, reference_landmarks, image) -> dict:
     label = read_image(result.label)
-    scores = score_segmentation(_union(label), _union(labels))
+    scores = score_segmentation(label, labels)  # of the union: it binarises both
     est = None if result.landmarks is None else np.asarray(result.landmarks, dtype=float)
     if (
         est is not None

@@ -22,6 +22,7 @@ from medseg.io import check_same_geometry, physical_to_voxel
 
 __all__ = [
     "dice",
+    "dice_per_label",
     "surface_distances",
     "hd95",
     "assd",
@@ -53,6 +54,18 @@ def dice(prediction: sitk.Image, reference: sitk.Image) -> float:
     if total == 0:
         return float("nan")
     return 2.0 * float(np.logical_and(a, b).sum()) / total
+
+
+def dice_per_label(prediction: sitk.Image, reference: sitk.Image) -> dict[int, float]:
+    """Dice overlap of each non-zero value of ``reference`` (a label map of sub-labels, e.g.
+    the hippocampus' 1 anterior and 2 posterior) with the same value in ``prediction``."""
+    _check_same_grid(prediction, reference)
+    a, b = sitk.GetArrayViewFromImage(prediction), sitk.GetArrayViewFromImage(reference)
+    out = {}
+    for value in (int(v) for v in np.unique(b) if v):
+        p, r = a == value, b == value
+        out[value] = 2.0 * float(np.logical_and(p, r).sum()) / (int(p.sum()) + int(r.sum()))
+    return out
 
 
 def _directed(from_mask: sitk.Image, to_mask: sitk.Image) -> np.ndarray:

@@ -11,7 +11,14 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from medseg.errors import ImageGeometryError
-from medseg.evaluation.metrics import assd, dice, hd95, landmark_errors, score_segmentation
+from medseg.evaluation.metrics import (
+    assd,
+    dice,
+    dice_per_label,
+    hd95,
+    landmark_errors,
+    score_segmentation,
+)
 from medseg.io import voxel_to_physical
 
 SPACING = (0.5, 1.0, 2.0)  # x, y, z
@@ -99,3 +106,12 @@ def test_landmark_error_in_mm_and_voxels():
     np.testing.assert_allclose(vox, [2.0, 2.0])  # 1 mm at 0.5 mm in x; 4 mm at 2 mm in z
     with pytest.raises(ImageGeometryError):
         landmark_errors(estimated, reference[:1])
+
+
+def test_dice_per_label_scores_each_value_of_the_reference_and_the_union_binarises():
+    reference = sitk.GetImageFromArray(np.array([[[1, 1, 2, 2, 0, 0]]], dtype=np.uint8))
+    prediction = sitk.GetImageFromArray(np.array([[[1, 2, 2, 2, 0, 0]]], dtype=np.uint8))
+    assert dice_per_label(prediction, reference) == {1: pytest.approx(2 / 3), 2: 0.8}
+    # the union's scores see one structure: no boundary between its labels
+    scores = score_segmentation(prediction, reference)
+    assert scores.dice == 1.0 and scores.hd95 == 0.0

@@ -118,8 +118,9 @@ def _signals(view: FrameView, probabilities: np.ndarray, nodes: np.ndarray, cut:
     classifier that does not see the structure where the template puts it, and a cut that
     has to move far.
     """
-    columns = {v: i for i, v in enumerate((0,) + view.values)}
-    said = np.vectorize(columns.get)(view.shape[nodes])
+    column = np.zeros(256, dtype=np.intp)  # label value -> column of ``probabilities``
+    column[list(view.values)] = np.arange(1, len(view.values) + 1)
+    said = column[view.shape[nodes]]
     agreement = float(probabilities[np.arange(len(said)), said].mean())
     a, b = view.shape > 0, cut > 0
     dice = 2.0 * float(np.logical_and(a, b).sum()) / max(1, int(a.sum()) + int(b.sum()))

@@ -80,8 +80,9 @@ def frame_view(
     )
     values = tuple(int(v) for v in np.unique(sitk.GetArrayViewFromImage(template_labels)) if v)
     spacing = np.asarray(upright.GetSpacing(), dtype=float)[::-1]
-    masks = [shape > 0] + ([shape == v for v in values] if len(values) > 1 else [shape > 0])
-    distances = np.stack([signed_distance(m, spacing) for m in masks])
+    union = signed_distance(shape > 0, spacing)
+    own = [signed_distance(shape == v, spacing) for v in values] if len(values) > 1 else [union]
+    distances = np.stack([union, *own])
     return FrameView(pose, upright, shape, distances, values)
 
 
