@@ -99,7 +99,9 @@ def run_evaluation(
         shape model (``asm_boundary`` adds it with the regional stage); ``"multi_atlas"``
         adds the multi-atlas registration baseline
         (:mod:`medseg.evaluation.baselines.multi_atlas`; not in the default, it registers
-        9 atlases per test input); :class:`MethodSpec` objects add other estimators.
+        9 atlases per test input); ``"ceiling"`` and ``"ceiling_boundary"`` the template
+        on each case's reference landmarks, without and with the stage (a yardstick,
+        :mod:`medseg.evaluation.ceiling`); :class:`MethodSpec` objects add other estimators.
     labels : sequence of int, default (1,)
         Labels forming the structure (their union), e.g. ``(1, 2)`` for the hippocampus.
     n_landmarks : int, optional

@@ -178,7 +178,8 @@ def run_fold(task: FoldTask, on_row: Callable[[dict], None] | None = None) -> li
             (name, kwargs, item)
             for item in inputs
             for name, kwargs in spec.variants.items()
-            if todo(name, item) or any(todo(d, item) for d in spec.derived_from(name))
+            if todo(name, item)
+            or any(todo(d, item) for d in (*spec.derived_from(name), *spec.oracles_from(name)))
         ]
         if not wanted:
             continue
@@ -194,23 +195,33 @@ def run_fold(task: FoldTask, on_row: Callable[[dict], None] | None = None) -> li
             extra, reused = {}, 0.0
             if shares and id(item) in detected:
                 extra["candidates"], reused = detected[id(item)]
+            # Oracles need only the fitted estimator: the variant is segmented when it, or a
+            # method derived from its result, is still to score.
+            segment = todo(name, item) or any(todo(d, item) for d in spec.derived_from(name))
             t0 = time.perf_counter()
+            result = None
             try:
-                result = estimator.segment(image, **kwargs, **extra)
+                if segment:
+                    result = estimator.segment(image, **kwargs, **extra)
             except MedsegError as exc:  # one failed case is a result, not the end of the run
                 print(
                     f"{name} failed on {case.case_id} ({condition}), scored as Dice 0: {exc}",
                     file=sys.stderr,
                 )
-                result = None
             seconds = time.perf_counter() - t0 + reused
             if shares and id(item) not in detected and hasattr(result, "candidates"):
                 detected[id(item)] = (result.candidates, result.timings.get("detection", 0.0))
-            outputs = [(name, result)] if todo(name, item) else []
+            outputs = [(name, result, seconds)] if todo(name, item) else []
             for derived, attribute in spec.derived_from(name).items():
                 if todo(derived, item):
-                    outputs.append((derived, _relabelled(result, attribute)))
-            for method, output in outputs:
+                    outputs.append((derived, _relabelled(result, attribute), seconds))
+            for oracle, function in spec.oracles_from(name).items():
+                if todo(oracle, item):
+                    t0 = time.perf_counter()
+                    output = function(estimator, image, ref_lm)
+                    if output is not None:  # no reference to score against: no row
+                        outputs.append((oracle, output, time.perf_counter() - t0))
+            for method, output, method_seconds in outputs:
                 row = {
                     "method": method,
                     "fold": task.fold,
@@ -220,7 +231,7 @@ def run_fold(task: FoldTask, on_row: Callable[[dict], None] | None = None) -> li
                     "perturbation_deg": float(change.angle_deg),
                     "scale": float(change.scale),
                     **(_FAILED if output is None else _score(output, labels, ref_lm, image)),
-                    "seconds": seconds,
+                    "seconds": method_seconds,
                     "fit_seconds": fit_seconds,
                 }
                 if (

@@ -6,7 +6,10 @@ shape-prior segmenter gives two variants from one fit: the method itself
 (``use_prior=True``) and the detection-only baseline (``use_prior=False``), so both see the
 same forests, folds and seed. A variant's result can also be scored through another of its
 label maps, as a *derived* method at no extra cost: ``shape_only`` is the shape prior's
-label map before its regional stage (``Segmentation.shape_label``).
+label map before its regional stage (``Segmentation.shape_label``). An *oracle* is computed
+from the variant's fitted estimator and the test case's reference landmarks: ``ceiling``
+and ``ceiling_boundary``, the template carried onto perfect landmarks
+(:mod:`medseg.evaluation.ceiling`), a yardstick, not a method.
 
 Any estimator with ``fit(cohort) -> self`` and ``segment(image, **kwargs)`` returning an
 object with ``.label`` (a SimpleITK image on the input's grid) and ``.landmarks`` ((N, 3) mm,
@@ -16,6 +19,7 @@ or None for a method without landmarks: its landmark errors are NaN) can be eval
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -32,7 +36,16 @@ __all__ = [
 ]
 
 #: Names accepted by :func:`resolve_methods` (and ``medseg-evaluate --methods``).
-METHOD_NAMES = ("shape_prior", "shape_only", "detection", "asm", "asm_boundary", "multi_atlas")
+METHOD_NAMES = (
+    "shape_prior",
+    "shape_only",
+    "detection",
+    "asm",
+    "asm_boundary",
+    "multi_atlas",
+    "ceiling",
+    "ceiling_boundary",
+)
 #: The methods of a default run. ``multi_atlas`` is left out: it registers its 9 atlases to
 #: every test input (the unperturbed case and each perturbed copy), about 5 s per input on
 #: hippocampus crops, where the others share one fitted model and one detection.
@@ -61,20 +74,30 @@ class MethodSpec:
     derived : dict of str to (str, str)
         Method name to ``(variant, attribute)``: the variant's result scored with its
         ``attribute`` as the label map (e.g. ``("shape_prior", "shape_label")``).
+    oracles : dict of str to (str, callable)
+        Method name to ``(variant, function)``: ``function(estimator, image,
+        reference_landmarks)`` with the variant's fitted estimator and the test input's
+        reference landmarks returns a result (``.label``, ``.landmarks``), or None when it
+        cannot (no row is written).
     """
 
     estimator: Callable[..., Any]
     params: dict = field(default_factory=dict)
     variants: dict = field(default_factory=dict)
     derived: dict = field(default_factory=dict)
+    oracles: dict = field(default_factory=dict)
 
     @property
     def names(self) -> tuple[str, ...]:
-        return tuple(self.variants) + tuple(self.derived)
+        return tuple(self.variants) + tuple(self.derived) + tuple(self.oracles)
 
     def derived_from(self, variant: str) -> dict[str, str]:
         """The derived methods of ``variant``: name to the attribute holding their label."""
         return {name: attr for name, (source, attr) in self.derived.items() if source == variant}
+
+    def oracles_from(self, variant: str) -> dict[str, Callable]:
+        """The oracles of ``variant``: name to their function."""
+        return {name: fn for name, (source, fn) in self.oracles.items() if source == variant}
 
     def build(self, seed: int):
         """A fresh, unfitted estimator for one fold."""
@@ -102,7 +125,10 @@ def default_methods(
         TPS); "asm" the active shape model baseline of :mod:`medseg.evaluation.baselines.asm`,
         "asm_boundary" the same with the segmenter's regional stage (one fit gives both);
         "multi_atlas" the affine multi-atlas registration with majority voting of
-        :mod:`medseg.evaluation.baselines.multi_atlas` (no landmarks).
+        :mod:`medseg.evaluation.baselines.multi_atlas` (no landmarks); "ceiling" and
+        "ceiling_boundary" the shape prior's template on each case's reference landmarks,
+        without and with the regional stage (:mod:`medseg.evaluation.ceiling`; they imply
+        "shape_prior" like "shape_only" does).
     labels : sequence of int
         Labels forming the structure (their union).
     n_landmarks : int or None
@@ -117,11 +143,19 @@ def default_methods(
             f"unknown method(s) {unknown or names!r}: choose among {', '.join(METHOD_NAMES)}"
         )
     specs = []
-    seg_variants, derived = {}, {}
-    if "shape_prior" in names or "shape_only" in names:
+    seg_variants, derived, oracles = {}, {}, {}
+    implied = ("shape_prior", "shape_only", "ceiling", "ceiling_boundary")
+    if any(name in names for name in implied):
         seg_variants["shape_prior"] = {"use_prior": True}
     if "shape_only" in names:
         derived["shape_only"] = ("shape_prior", "shape_label")
+    if "ceiling" in names or "ceiling_boundary" in names:
+        from medseg.evaluation.ceiling import reference_ceiling
+
+        for name, boundary in (("ceiling", False), ("ceiling_boundary", True)):
+            if name in names:
+                fn = functools.partial(reference_ceiling, boundary=boundary)
+                oracles[name] = ("shape_prior", fn)
     if "detection" in names:
         seg_variants["detection"] = {"use_prior": False}
     if seg_variants:
@@ -129,7 +163,7 @@ def default_methods(
 
         params = {"n_landmarks": n_landmarks, "labels": tuple(labels)}
         params.update(segmenter_params or {})
-        specs.append(MethodSpec(ShapePriorSegmenter, params, seg_variants, derived))
+        specs.append(MethodSpec(ShapePriorSegmenter, params, seg_variants, derived, oracles))
     if "asm" in names or "asm_boundary" in names:
         from medseg.evaluation.baselines import ASMBaseline
 

@@ -59,7 +59,16 @@ _HEADERS = {
     "gap": "duality gap",
     "seconds": "s / case",
 }
-_PREFERRED = ("shape_prior", "shape_only", "detection", "asm", "asm_boundary", "multi_atlas")
+_PREFERRED = (
+    "shape_prior",
+    "shape_only",
+    "detection",
+    "asm",
+    "asm_boundary",
+    "multi_atlas",
+    "ceiling",
+    "ceiling_boundary",
+)
 # Means per condition in summary.json, besides the Dice loss, angle, scale and count.
 _PERTURBATION_SCORES = ("dice", "landmark_error_mm", "landmark_error_vox", "hd95")
 

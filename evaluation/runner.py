@@ -49,6 +49,11 @@ def _method_config(specs: Sequence[MethodSpec]) -> dict:
             }
         for name, (variant, attribute) in spec.derived.items():
             out[name] = {**out[variant], "label": attribute}
+        for name, (variant, function) in spec.oracles.items():
+            target = getattr(function, "func", function)
+            keywords = sorted(getattr(function, "keywords", {}).items())
+            oracle = f"{getattr(target, '__qualname__', repr(target))}{keywords!r}"
+            out[name] = {**out[variant], "oracle": oracle}
     return out
 
 

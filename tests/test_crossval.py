@@ -8,6 +8,7 @@ mean training landmarks with a seeded jitter) on a tiny generated cohort of ball
 from __future__ import annotations
 
 import csv
+import math
 import sys
 from pathlib import Path
 
@@ -611,3 +612,53 @@ def test_labels_of_a_structure_of_two_are_scored_each_and_a_derived_map_costs_no
         assert dict(p.split(":") for p in plain["dice_by_label"].split(";"))["2"] == "0.000000"
     by_label = summarise(rows)["by_label"]
     assert by_label["two"][2] > 0.8 and by_label["plain"][2] == 0.0
+
+
+class LoggingMethod(ThresholdMethod):
+    """Fake method that writes a line to its log at each segmentation."""
+
+    def segment(self, image, *, offset: float = 0.0):
+        with open(self.log, "a") as fh:
+            fh.write("segment\n")
+        return super().segment(image, offset=offset)
+
+
+def _ball_from_landmarks(estimator, image, reference_landmarks):
+    """Oracle of the engine test: the ball through the reference landmarks (their centre and
+    mean radius, in voxels); None at its first call of each fold (no row is then written)."""
+    estimator.oracle_calls_ = getattr(estimator, "oracle_calls_", 0) + 1
+    if estimator.oracle_calls_ == 1:
+        return None
+    xyz = np.asarray(
+        [image.TransformPhysicalPointToContinuousIndex(p) for p in reference_landmarks]
+    )  # the balls are round in voxels
+    centre = xyz.mean(axis=0)[::-1]
+    radius = np.linalg.norm(xyz - xyz.mean(axis=0), axis=1).mean()
+    zyx = np.indices(image.GetSize()[::-1], dtype=float)
+    inside = ((zyx - centre[:, None, None, None]) ** 2).sum(0) <= radius**2
+    label = sitk.GetImageFromArray(inside.astype(np.uint8))
+    label.CopyInformation(image)
+    return _Result(label, None)
+
+
+def test_an_oracle_added_on_resume_sees_the_reference_and_segments_nothing_again(tmp_path):
+    cohort = tiny_cohort(n_subjects=10, per_subject=1)
+    log = tmp_path / "calls.log"
+    plain = MethodSpec(LoggingMethod, {"log": str(log)}, {"plain": {}})
+    rows = read_results(run_folds(cohort, (plain,), tmp_path / "run", folds=2))
+    assert {r["method"] for r in rows} == {"plain"} and len(rows) == len(cohort)
+    assert log.read_text().splitlines().count("segment") == len(cohort)
+    with_oracle = MethodSpec(
+        LoggingMethod,
+        {"log": str(log)},
+        {"plain": {}},
+        oracles={"oracle": ("plain", _ball_from_landmarks)},
+    )
+    rows = read_results(run_folds(cohort, (with_oracle,), tmp_path / "run", folds=2))
+    # the resume fitted each fold again for the oracle but segmented nothing; each fold's
+    # first oracle call gave None and wrote no row
+    assert log.read_text().splitlines().count("segment") == len(cohort)
+    oracle = [r for r in rows if r["method"] == "oracle"]
+    assert len(oracle) == len(cohort) - 2
+    for row in oracle:  # the ball through the true landmarks is the true ball
+        assert row["dice"] > 0.95 and math.isnan(row["landmark_error_mm"])

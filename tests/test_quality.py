@@ -14,6 +14,7 @@ import copy
 
 import numpy as np
 import pytest
+import SimpleITK as sitk
 
 from medseg.datasets import make_phantom_cohort
 from medseg.evaluation.metrics import dice
@@ -162,3 +163,27 @@ def test_segmentation_does_not_depend_on_the_pose(posed):
     assert both.sum() >= 1
     assert np.median(posed["disagreement"][both]) <= 4.5
     assert np.abs(posed["posed_dice"] - posed["dice"])[both].mean() <= 0.05
+
+
+@pytest.mark.slow
+def test_the_ceiling_is_the_segmenter_on_other_landmarks(cohort, model):
+    """``medseg-evaluate``'s ceiling methods: the same warp and stage as the segmenter, fed
+    the reference landmarks instead of the found ones."""
+    from medseg.evaluation.ceiling import reference_ceiling
+
+    def array(label):
+        return sitk.GetArrayFromImage(label)
+
+    gains = []
+    for case in cohort[N_TRAIN : N_TRAIN + 3]:
+        image, truth = case.load_image(), select_labels(case.load_label(), (1,))
+        seg = model.segment(image)
+        own = reference_ceiling(model, image, seg.landmarks, boundary=False)
+        own_refined = reference_ceiling(model, image, seg.landmarks, boundary=True)
+        np.testing.assert_array_equal(array(own.label), array(seg.shape_label))
+        np.testing.assert_array_equal(array(own_refined.label), array(seg.label))
+        ceiling = reference_ceiling(model, image, case.load_landmarks(), boundary=False)
+        gains.append(dice(ceiling.label, truth) - dice(seg.shape_label, truth))
+    assert min(gains) > 0.0  # the true landmarks carry the template closer to the truth
+    assert reference_ceiling(model, image, None, boundary=False) is None
+    assert reference_ceiling(model, image, seg.landmarks[:-1], boundary=True) is None
