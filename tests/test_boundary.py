@@ -68,6 +68,7 @@ def stage(cohort):
         smoothness=(0.5, 2.0),
         shape_weight=(0.0, 0.3),
         validation_fraction=0.5,  # 5 cases: as many as the quality score needs
+        n_atlases=10,  # not the default: the atlas vote runs through every test of the stage
         random_state=0,
     ).fit(frame, *template, list(images), list(labels), np.stack(landmarks))
     return fitted, frame, template
@@ -167,3 +168,118 @@ def test_signed_distance_is_negative_inside_and_metric():
     assert np.all(d[mask] < 0) and np.all(d[~mask] > 0)
     # 3 voxels of 2 mm beyond the last inside voxel, less half the smallest spacing
     assert d[0, 0, 8] == pytest.approx(3 * 2.0 - 0.5)
+
+
+def test_atlases_carried_onto_their_own_landmarks_give_their_labels_back(stage, cohort):
+    fitted, frame, _ = stage
+    atlases = fitted.atlases_
+    assert len(atlases) == 10 and atlases.values == (1, 2)  # every training case
+    grid = frame.grid()
+    for j in (0, 7):
+        image, label, landmarks = cohort[atlases.sources[j]]
+        pose = frame.pose(landmarks)
+        own = np.zeros(len(atlases), dtype=bool)
+        own[j] = True
+        fused = atlases.fuse(grid, pose(landmarks), use=own)
+        assert fused.shape == (3, *sitk.GetArrayViewFromImage(grid).shape)
+        np.testing.assert_allclose(fused.sum(axis=0), 1.0, atol=1e-5)
+        # its own spline is the identity: its indicators, linearly resampled, come back
+        for k, value in enumerate((1, 2)):
+            indicator = sitk.Cast(label == value, sitk.sitkFloat32)
+            expected = sitk.GetArrayFromImage(frame.resample(indicator, pose))
+            np.testing.assert_allclose(fused[1 + k], np.clip(expected, 0, 1), atol=1 / 255)
+        inside = fused[0] < 0.5
+        assert (atlases.labels(fused)[inside] > 0).all() and not atlases.labels(fused)[
+            ~inside
+        ].any()
+        none = atlases.fuse(grid, pose(landmarks), use=np.zeros(len(atlases), dtype=bool))
+        assert (atlases.labels(none) == 0).all()
+
+
+def test_a_training_case_never_fuses_atlases_of_its_own_subject(cohort, monkeypatch):
+    from medseg.segmenter._atlases import FrameAtlases
+
+    calls = []
+    fuse = FrameAtlases.fuse
+
+    def recording(self, grid, landmarks, *, use=None):
+        calls.append((self.sources.copy(), None if use is None else use.copy()))
+        return fuse(self, grid, landmarks, use=use)
+
+    monkeypatch.setattr(FrameAtlases, "fuse", recording)
+    images, labels, landmarks = zip(*cohort[:10], strict=True)
+    groups = np.arange(10) // 2  # two scans per subject
+    BoundaryStage(
+        n_estimators=2,
+        rows_per_case=300,
+        smoothness=(1.0,),
+        shape_weight=(0.3,),
+        n_atlases=6,
+        auto_context=False,
+        random_state=0,
+    ).fit(
+        ShapeFrame.fit(np.stack(landmarks), list(images)),
+        labels[0],
+        landmarks[0],
+        list(images),
+        list(labels),
+        np.stack(landmarks),
+        groups=groups,
+    )
+    assert len(calls) >= 10
+    for i, (sources, use) in enumerate(calls[:10]):  # the training cases, in order
+        assert len(sources) == 6
+        np.testing.assert_array_equal(use, groups[sources] != groups[i])
+
+
+def test_a_stage_of_the_first_format_loads_without_atlases(stage, cohort, tmp_path):
+    from medseg.io import load_arrays, save_arrays
+
+    fitted, frame, template = stage
+    folder = fitted.save(tmp_path / "boundary")
+    assert (folder / "atlases.npz").is_file()
+    (folder / "atlases.npz").unlink()
+    with pytest.raises(ModelFileError, match="atlases.npz"):
+        BoundaryStage.load(folder)
+    # a stage of format 1 had no atlases: its header says nothing of them (a stage without
+    # atlases is still written as format 1)
+    plain = BoundaryStage(
+        n_estimators=2, rows_per_case=300, smoothness=(1.0,), shape_weight=(0.3,),
+        n_atlases=0, random_state=0,
+    )  # fmt: skip
+    images, labels, landmarks = zip(*cohort[:10], strict=True)
+    plain.fit(frame, *template, list(images), list(labels), np.stack(landmarks))
+    old = plain.save(tmp_path / "old")
+    header, arrays = load_arrays(old / "stage.npz", what="boundary stage")
+    assert header["format_version"] == 1 and not (old / "atlases.npz").exists()
+    del header["n_atlases"], header["atlas_patches"]
+    save_arrays(old / "stage.npz", arrays, header=header)
+    loaded = BoundaryStage.load(old)
+    assert loaded.atlases_ is None and loaded.n_atlases == 0
+    image, _, points = cohort[10]
+    a, b = (s.refine(frame, *template, image, points) for s in (loaded, plain))
+    np.testing.assert_array_equal(sitk.GetArrayFromImage(a.label), sitk.GetArrayFromImage(b.label))
+
+
+def test_patch_weighted_votes_follow_the_atlas_that_looks_like_the_case(cohort):
+    from medseg.segmenter._atlases import FrameAtlases
+
+    images, labels, landmarks = zip(*cohort[:10], strict=True)
+    frame = ShapeFrame.fit(np.stack(landmarks), list(images))
+    args = (frame, list(labels), np.stack(landmarks), (1, 2), [3, 4])
+    plain = FrameAtlases.build(*args)
+    weighted = FrameAtlases.build(*args, images=list(images))
+    assert plain.images is None and weighted.images.shape == (2, *plain.shares.shape[2:])
+    pose = frame.pose(landmarks[3])
+    upright = frame.resample(images[3], pose)  # the case is atlas 0 (case 3) itself
+    mean = plain.fuse(upright, pose(landmarks[3]))
+    votes = weighted.fuse(upright, pose(landmarks[3]))
+    own = plain.shares[0] / 255.0
+    # where the two atlases disagree, the weighted vote sides with the case's own labels
+    differ = np.abs(plain.shares[0].astype(int) - plain.shares[1]).max(axis=0) > 128
+    assert differ.sum() > 20
+    assert (
+        np.abs(votes[1:] - own)[:, differ].mean() < 0.5 * np.abs(mean[1:] - own)[:, differ].mean()
+    )
+    again = FrameAtlases.from_arrays(weighted.arrays())
+    np.testing.assert_array_equal(again.fuse(upright, pose(landmarks[3])), votes)

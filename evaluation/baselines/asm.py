@@ -160,6 +160,7 @@ class ASMBaseline:
                 images,
                 [label_values(case.load_label(), self.labels) for case in cohort],
                 np.asarray(shapes),
+                groups=[str(case.subject) for case in cohort],
             )
         return self
 

@@ -7,8 +7,10 @@ into the model):
 
 1. the image is resampled into the frame of the landmarks found (:class:`ShapeFrame`):
    upright, at the mean size, whatever the input's pose;
-2. the template's label map is warped there, and its signed distances give a narrow band
-   around it and the shape's opinion of every voxel;
+2. training label maps kept in the frame (:class:`FrameAtlases`) are carried there by
+   their thin-plate splines and vote (the template alone when there are none); the vote's
+   signed distances give a narrow band around it and the shape's opinion of every voxel,
+   and its shares are features;
 3. a voxel classifier (:class:`medseg.detection.VoxelClassifier`) gives each voxel of the
    band its label probabilities, and a second one, which also sees the first one's answer
    around each voxel (auto-context, Tu & Bai 2010), gives them again;
@@ -41,6 +43,7 @@ from medseg.errors import ModelFileError, ParameterError
 from medseg.frame import ShapeFrame
 from medseg.io import check_format, load_arrays, save_arrays
 from medseg.mrf import grid_edges, potts_expansion
+from medseg.segmenter._atlases import FrameAtlases
 from medseg.segmenter._frame_view import FrameView, frame_view, to_input
 
 __all__ = ["BoundaryStage", "Refined"]
@@ -173,6 +176,16 @@ class BoundaryStage:
     auto_context : bool, default True
         A second classifier on the first one's probabilities around each voxel (its
         training cases see the first classifier's answers cross-fitted on two halves).
+    n_atlases : int, default 0
+        Training label maps kept in the frame (:class:`FrameAtlases`) whose thin-plate
+        spline vote replaces the one template's warp (band, shape term, distances) and
+        whose shares are features; 0 uses the template alone. A training case never sees
+        atlases of its own subject (``groups`` of :meth:`fit`). Off by default: on 30
+        held-out hippocampus subjects 15 atlases took the vote before the stage from 0.816
+        to 0.830 Dice, but the stage's result not past the template's (0.8695 vs 0.8693).
+    atlas_patches : bool, default False
+        Weight each atlas' vote at a voxel by the similarity of the two images' patches
+        there (the atlases then keep their images in the frame).
     random_state : int, RandomState or None
     n_jobs : int, default 1
 
@@ -182,6 +195,8 @@ class BoundaryStage:
         The classifier whose probabilities the cut uses (the second with auto-context).
     context_ : VoxelClassifier or None
         With auto-context, the first classifier.
+    atlases_ : FrameAtlases or None
+        With ``n_atlases > 0``.
     values_ : tuple of int
         The label values it returns.
     smoothness_, shape_weight_ : float
@@ -204,6 +219,8 @@ class BoundaryStage:
         shape_weight: tuple = (0.0, 0.1, 0.3, 1.0),
         validation_fraction: float = 0.25,
         auto_context: bool = True,
+        n_atlases: int = 0,
+        atlas_patches: bool = False,
         random_state=None,
         n_jobs: int = 1,
     ):
@@ -215,6 +232,8 @@ class BoundaryStage:
         self.shape_weight = shape_weight
         self.validation_fraction = validation_fraction
         self.auto_context = auto_context
+        self.n_atlases = n_atlases
+        self.atlas_patches = atlas_patches
         self.random_state = random_state
         self.n_jobs = n_jobs
 
@@ -228,22 +247,49 @@ class BoundaryStage:
         images,
         label_maps,
         landmarks,
+        groups=None,
     ) -> BoundaryStage:
         """Learn the classifier and choose the cut's weights on training cases.
 
         ``label_maps`` hold the label values to learn (:func:`medseg.io.label_values`), in the
-        images' geometry; ``landmarks`` are the training landmarks (S, N, 3) in mm.
+        images' geometry; ``landmarks`` are the training landmarks (S, N, 3) in mm;
+        ``groups`` (S,) their subjects (each case its own by default).
         """
         if not (np.isfinite(self.band_mm) and self.band_mm > 0):
             raise ParameterError(f"`band_mm` must be > 0; got {self.band_mm}")
         if not 0 < self.validation_fraction < 1:
             raise ParameterError("`validation_fraction` must be in (0, 1)")
+        if int(self.n_atlases) < 0:
+            raise ParameterError(f"`n_atlases` must be >= 0; got {self.n_atlases}")
         rng = check_random_state(self.random_state)
         n = len(images)
+        groups = np.arange(n) if groups is None else np.asarray(groups)
+        if groups.shape != (n,):
+            raise ParameterError(f"`groups` must hold one subject per case ({n})")
+        self.atlases_ = None
+        if int(self.n_atlases) > 0:
+            values = tuple(
+                int(v) for v in np.unique(sitk.GetArrayViewFromImage(template_labels)) if v
+            )
+            sources = np.sort(rng.permutation(n)[: int(self.n_atlases)])
+            self.atlases_ = FrameAtlases.build(
+                frame,
+                label_maps,
+                landmarks,
+                values,
+                sources,
+                images=images if self.atlas_patches else None,
+            )
         cases = []
-        for image, label_map, points in zip(images, label_maps, landmarks, strict=True):
+        for i, (image, label_map, points) in enumerate(
+            zip(images, label_maps, landmarks, strict=True)
+        ):
             view = (frame, template_labels, template_landmarks)
-            cases.append(self._training_case(*view, image, label_map, np.asarray(points), rng))
+            use = None
+            if self.atlases_ is not None:  # never the case's own subject
+                use = groups[self.atlases_.sources] != groups[i]
+            case = self._training_case(*view, image, label_map, np.asarray(points), rng, use)
+            cases.append(case)
         self.values_ = cases[0][0].values
         self.context_ = None
         if self.auto_context:
@@ -277,16 +323,32 @@ class BoundaryStage:
         return np.hstack([features, context])
 
     def _training_case(
-        self, frame, template_labels, template_landmarks, image, label_map, points, rng
+        self, frame, template_labels, template_landmarks, image, label_map, points, rng, use
     ):
         """One training image through jittered landmarks: its view, truth and features."""
         noise = rng.normal(scale=self.jitter_mm, size=points.shape)
         noise += rng.normal(scale=self.jitter_mm, size=3)
-        view = frame_view(frame, template_labels, template_landmarks, image, points + noise)
+        view = frame_view(
+            frame,
+            template_labels,
+            template_landmarks,
+            image,
+            points + noise,
+            atlases=self.atlases_,
+            use=use,
+        )
         truth = sitk.GetArrayFromImage(frame.resample(label_map, view.pose, is_label=True))
         truth = np.where(np.isin(truth, view.values), truth, 0)
         nodes = self._nodes(view)
-        return view, truth, nodes, voxel_features(view.upright, view.distances, nodes)
+        return view, truth, nodes, self._features(view, nodes)
+
+    @staticmethod
+    def _features(view: FrameView, nodes: np.ndarray) -> np.ndarray:
+        """:func:`voxel_features`, and with atlases their vote at each voxel."""
+        features = voxel_features(view.upright, view.distances, nodes)
+        if view.atlas is None:
+            return features
+        return np.hstack([features, view.atlas[:, nodes].T.astype(np.float32)])
 
     def _nodes(self, view: FrameView) -> np.ndarray:
         """The domain and one layer of voxels around it (held to background)."""
@@ -351,9 +413,11 @@ class BoundaryStage:
     ) -> Refined:
         """The refined label map of ``image`` (its grid, uint8, the label values), and how
         far image and shape agreed (:class:`Refined`)."""
-        view = frame_view(frame, template_labels, template_landmarks, image, landmarks)
+        view = frame_view(
+            frame, template_labels, template_landmarks, image, landmarks, atlases=self.atlases_
+        )
         nodes = self._nodes(view)
-        features = voxel_features(view.upright, view.distances, nodes)
+        features = self._features(view, nodes)
         if self.context_ is not None:
             features = self._extend(self.context_, view, nodes, features)
         probabilities = self._probabilities(self.classifier_, features)
@@ -385,7 +449,7 @@ class BoundaryStage:
     # -- persistence ------------------------------------------------------------------------
 
     FORMAT = "medseg.segmenter.BoundaryStage"
-    FORMAT_VERSION = 1
+    FORMAT_VERSION = 2  # 2: atlases (atlases.npz, their features); 1 still loads
     _PARAMS = (
         "band_mm",
         "jitter_mm",
@@ -401,14 +465,23 @@ class BoundaryStage:
         folder.mkdir(parents=True, exist_ok=True)
         header = {
             "format": self.FORMAT,
-            "format_version": self.FORMAT_VERSION,
+            # a stage without atlases is what version 1 was: older medseg can read it
+            "format_version": 1 if self.atlases_ is None else self.FORMAT_VERSION,
             "params": {name: getattr(self, name) for name in self._PARAMS},
             "values": [int(v) for v in self.values_],
             "smoothness": float(self.smoothness_),
             "shape_weight": float(self.shape_weight_),
+            "n_atlases": 0 if self.atlases_ is None else len(self.atlases_),
+            "atlas_patches": self.atlases_ is not None and self.atlases_.images is not None,
         }
         arrays = {"selection": np.asarray(self.selection_), "reference": self.reference_}
         save_arrays(folder / "stage.npz", arrays, header=header)
+        if self.atlases_ is not None:
+            save_arrays(
+                folder / "atlases.npz",
+                self.atlases_.arrays(),
+                header={"format": "medseg.segmenter.FrameAtlases", "format_version": 1},
+            )
         self.classifier_.save(folder / "classifier.npz")
         if self.context_ is not None:
             self.context_.save(folder / "context.npz")
@@ -428,6 +501,8 @@ class BoundaryStage:
             stage.shape_weight_ = float(header["shape_weight"])
             stage.selection_ = [tuple(map(float, row)) for row in arrays["selection"]]
             stage.reference_ = np.asarray(arrays["reference"], dtype=float)
+            stage.n_atlases = int(header.get("n_atlases", 0))  # stages before atlases: 0
+            stage.atlas_patches = bool(header.get("atlas_patches", False))
         except (KeyError, TypeError, ValueError) as exc:
             raise ModelFileError(f"{source} is incomplete or corrupt: {exc}") from None
         if not stage.values_ or min(stage.values_) < 1 or max(stage.values_) > 255:
@@ -435,6 +510,9 @@ class BoundaryStage:
         reference = stage.reference_
         if reference.ndim != 2 or reference.shape[1] != 2 or not np.isfinite(reference).all():
             raise ModelFileError(f"{source}: reference signals of shape {reference.shape}")
+        stage.atlases_ = None
+        if stage.n_atlases:
+            stage.atlases_ = _load_atlases(folder / "atlases.npz", stage)
         stage.classifier_ = VoxelClassifier.load(folder / "classifier.npz")
         stage.context_ = None
         if stage.auto_context:
@@ -450,3 +528,27 @@ class BoundaryStage:
                 f"stage.npz {stage.values_}"
             )
         return stage
+
+
+def _load_atlases(path: Path, stage: BoundaryStage) -> FrameAtlases:
+    """The stage's atlases; ``ModelFileError`` if missing or not the stage's."""
+    if not path.is_file():
+        raise ModelFileError(f"{path} is missing; the model is incomplete")
+    header, arrays = load_arrays(path, what="frame atlases")
+    check_format(header, format="medseg.segmenter.FrameAtlases", version=1, source=str(path))
+    try:
+        atlases = FrameAtlases.from_arrays(arrays)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ModelFileError(f"{path} is incomplete or corrupt: {exc}") from None
+    shares, points = atlases.shares, atlases.landmarks
+    if (
+        len(atlases) != stage.n_atlases
+        or atlases.values != tuple(stage.values_)
+        or shares.ndim != 5
+        or shares.shape[1] != len(atlases.values)
+        or points.ndim != 3
+        or len(points) != len(shares)
+        or not np.isfinite(points).all()
+    ):
+        raise ModelFileError(f"{path} does not match its stage.npz")
+    return atlases

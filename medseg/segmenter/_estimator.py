@@ -368,6 +368,7 @@ class ShapePriorSegmenter(BaseEstimator):
                 kept_images,
                 [label_maps[i] for i in np.flatnonzero(keep)],
                 self.landmarks_,
+                groups=[str(cohort[i].subject) for i in np.flatnonzero(keep)],
             )
             timings["boundary"] = time.perf_counter() - t0
         self.fit_timings_ = timings

@@ -20,6 +20,7 @@ from medseg.frame import ShapeFrame
 from medseg.geometry import Similarity
 from medseg.io import resample_affine
 from medseg.reconstruction import warp_labels
+from medseg.segmenter._atlases import FrameAtlases
 
 __all__ = ["FrameView", "frame_view", "signed_distance", "to_input"]
 
@@ -52,6 +53,9 @@ class FrameView:
         Signed distances to the union, then to each of the K label values.
     values : tuple of int
         The label values (1 for a single label).
+    atlas : (1 + K, Z, Y, X) float32 array or None
+        With atlases (:class:`FrameAtlases`), their fused label probabilities (background
+        first); ``shape`` is then their vote instead of the one template's warp.
     """
 
     pose: Similarity
@@ -59,6 +63,7 @@ class FrameView:
     shape: np.ndarray
     distances: np.ndarray
     values: tuple
+    atlas: np.ndarray | None = None
 
     def domain(self, band_mm: float) -> np.ndarray:
         """The voxels the cut decides: within ``band_mm`` outside the union, and inside."""
@@ -71,19 +76,28 @@ def frame_view(
     template_landmarks: np.ndarray,
     image: sitk.Image,
     landmarks: np.ndarray,
+    *,
+    atlases: FrameAtlases | None = None,
+    use: np.ndarray | None = None,
 ) -> FrameView:
-    """``image`` resampled into the frame of ``landmarks``, the template warped there."""
+    """``image`` resampled into the frame of ``landmarks``, the template warped there, or
+    with ``atlases`` the vote of those ``use`` selects (:meth:`FrameAtlases.fuse`)."""
     pose = frame.pose(landmarks)
     upright = frame.resample(image, pose)
-    shape = sitk.GetArrayFromImage(
-        warp_labels(template_labels, template_landmarks, pose(landmarks), upright)
-    )
+    atlas = None
+    if atlases is not None:
+        atlas = atlases.fuse(upright, pose(landmarks), use=use)
+        shape = atlases.labels(atlas)
+    else:
+        shape = sitk.GetArrayFromImage(
+            warp_labels(template_labels, template_landmarks, pose(landmarks), upright)
+        )
     values = tuple(int(v) for v in np.unique(sitk.GetArrayViewFromImage(template_labels)) if v)
     spacing = np.asarray(upright.GetSpacing(), dtype=float)[::-1]
     union = signed_distance(shape > 0, spacing)
     own = [signed_distance(shape == v, spacing) for v in values] if len(values) > 1 else [union]
     distances = np.stack([union, *own])
-    return FrameView(pose, upright, shape, distances, values)
+    return FrameView(pose, upright, shape, distances, values, atlas)
 
 
 def to_input(view: FrameView, labels: np.ndarray, image: sitk.Image) -> sitk.Image:
