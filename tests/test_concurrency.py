@@ -191,6 +191,7 @@ def test_concurrent_writers_of_one_file_never_mix(tmp_path, suffix):
 
 EVALUATE = textwrap.dedent(
     """
+    import signal
     import sys
     import time
 
@@ -228,6 +229,9 @@ EVALUATE = textwrap.dedent(
             return _Result(label, self.landmarks_ + offset)
 
 
+    # a user's Ctrl-C raises KeyboardInterrupt; a shell starting the tests in the background
+    # would have the child inherit SIGINT ignored, so the child says what it expects
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     dataset, output, log = sys.argv[1:4]
     spec = MethodSpec(
         SlowThreshold, {"delay": 0.15, "log": log}, {"thresh": {}, "shifted": {"offset": 1.0}}
