@@ -42,6 +42,7 @@ import numpy as np
 import SimpleITK as sitk
 
 from medseg.errors import InputFileError, MedsegError
+from medseg.evaluation.methods import METHOD_NAMES
 from medseg.evaluation.perturbation import CONDITIONS, UNPERTURBED, parse_condition
 from medseg.evaluation.results import SCORES, prediction_path, read_results
 from medseg.io import atomic_write, read_image, select_labels, voxel_to_physical
@@ -59,16 +60,7 @@ _HEADERS = {
     "gap": "duality gap",
     "seconds": "s / case",
 }
-_PREFERRED = (
-    "shape_prior",
-    "shape_only",
-    "detection",
-    "asm",
-    "asm_boundary",
-    "multi_atlas",
-    "ceiling",
-    "ceiling_boundary",
-)
+_PREFERRED = METHOD_NAMES  # the methods in their order, others after them
 # Means per condition in summary.json, besides the Dice loss, angle, scale and count.
 _PERTURBATION_SCORES = ("dice", "landmark_error_mm", "landmark_error_vox", "hd95")
 

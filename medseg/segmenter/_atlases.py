@@ -53,6 +53,9 @@ class FrameAtlases:
     sources: np.ndarray
     images: np.ndarray | None = None
 
+    FORMAT = "medseg.segmenter.FrameAtlases"  # the header of ``atlases.npz``
+    VERSION = 1
+
     @classmethod
     def build(
         cls, frame: ShapeFrame, label_maps, landmarks, values, sources, images=None

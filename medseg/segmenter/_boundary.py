@@ -44,7 +44,7 @@ from medseg.frame import ShapeFrame
 from medseg.io import check_format, load_arrays, save_arrays
 from medseg.mrf import grid_edges, potts_expansion
 from medseg.segmenter._atlases import FrameAtlases
-from medseg.segmenter._frame_view import FrameView, frame_view, to_input
+from medseg.segmenter._frame_view import FrameView, frame_view, template_values, to_input
 
 __all__ = ["BoundaryStage", "Refined"]
 
@@ -268,15 +268,12 @@ class BoundaryStage:
             raise ParameterError(f"`groups` must hold one subject per case ({n})")
         self.atlases_ = None
         if int(self.n_atlases) > 0:
-            values = tuple(
-                int(v) for v in np.unique(sitk.GetArrayViewFromImage(template_labels)) if v
-            )
             sources = np.sort(rng.permutation(n)[: int(self.n_atlases)])
             self.atlases_ = FrameAtlases.build(
                 frame,
                 label_maps,
                 landmarks,
-                values,
+                template_values(template_labels),
                 sources,
                 images=images if self.atlas_patches else None,
             )
@@ -480,7 +477,7 @@ class BoundaryStage:
             save_arrays(
                 folder / "atlases.npz",
                 self.atlases_.arrays(),
-                header={"format": "medseg.segmenter.FrameAtlases", "format_version": 1},
+                header={"format": FrameAtlases.FORMAT, "format_version": FrameAtlases.VERSION},
             )
         self.classifier_.save(folder / "classifier.npz")
         if self.context_ is not None:
@@ -535,7 +532,7 @@ def _load_atlases(path: Path, stage: BoundaryStage) -> FrameAtlases:
     if not path.is_file():
         raise ModelFileError(f"{path} is missing; the model is incomplete")
     header, arrays = load_arrays(path, what="frame atlases")
-    check_format(header, format="medseg.segmenter.FrameAtlases", version=1, source=str(path))
+    check_format(header, format=FrameAtlases.FORMAT, version=FrameAtlases.VERSION, source=str(path))
     try:
         atlases = FrameAtlases.from_arrays(arrays)
     except (KeyError, TypeError, ValueError) as exc:

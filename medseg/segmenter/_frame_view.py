@@ -22,7 +22,12 @@ from medseg.io import resample_affine
 from medseg.reconstruction import warp_labels
 from medseg.segmenter._atlases import FrameAtlases
 
-__all__ = ["FrameView", "frame_view", "signed_distance", "to_input"]
+__all__ = ["FrameView", "frame_view", "signed_distance", "template_values", "to_input"]
+
+
+def template_values(template_labels: sitk.Image) -> tuple:
+    """The template's non-zero label values, ascending."""
+    return tuple(int(v) for v in np.unique(sitk.GetArrayViewFromImage(template_labels)) if v)
 
 
 def signed_distance(mask: np.ndarray, spacing_zyx) -> np.ndarray:
@@ -92,7 +97,7 @@ def frame_view(
         shape = sitk.GetArrayFromImage(
             warp_labels(template_labels, template_landmarks, pose(landmarks), upright)
         )
-    values = tuple(int(v) for v in np.unique(sitk.GetArrayViewFromImage(template_labels)) if v)
+    values = template_values(template_labels)
     spacing = np.asarray(upright.GetSpacing(), dtype=float)[::-1]
     union = signed_distance(shape > 0, spacing)
     own = [signed_distance(shape == v, spacing) for v in values] if len(values) > 1 else [union]
