@@ -65,6 +65,7 @@ _FAILED = {
     "landmark_error_vox": math.nan,
     "gap": math.nan,
     "dice_by_label": "",
+    "quality": math.nan,
 }
 
 
@@ -106,6 +107,7 @@ def _score(result, labels, reference_landmarks, image) -> dict:
         lm_mm = lm_vox = math.nan
     mrf = getattr(result, "mrf", None)
     gap = float(mrf.gap) if mrf is not None and getattr(mrf, "gap", None) is not None else math.nan
+    quality = (getattr(result, "quality", None) or {}).get("score")
     return {
         "dice": scores.dice,
         "hd95": scores.hd95,
@@ -114,6 +116,7 @@ def _score(result, labels, reference_landmarks, image) -> dict:
         "landmark_error_vox": lm_vox,
         "gap": gap,
         "dice_by_label": _dice_by_label(label, labels),
+        "quality": math.nan if quality is None else float(quality),
     }
 
 

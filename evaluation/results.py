@@ -55,14 +55,16 @@ COLUMNS = (
     "scale",
     *SCORES,
     "dice_by_label",
+    "quality",
     "seconds",
     "fit_seconds",
 )
 #: Columns a file of an earlier version may lack, and the value their rows then take:
-#: ``dice_by_label``, the Dice of each label of a reference of several ("1:0.89;2:0.87").
-_OPTIONAL = {"dice_by_label": ""}
+#: ``dice_by_label``, the Dice of each label of a reference of several ("1:0.89;2:0.87");
+#: ``quality``, the segmenter's ``Segmentation.quality["score"]`` (NaN for methods without).
+_OPTIONAL = {"dice_by_label": "", "quality": "nan"}
 _FLOAT_COLUMNS = tuple(
-    c for c in COLUMNS[COLUMNS.index("perturbation_deg") :] if c not in _OPTIONAL
+    c for c in COLUMNS[COLUMNS.index("perturbation_deg") :] if c != "dice_by_label"
 )
 
 

@@ -580,6 +580,7 @@ class TwoLabelMethod(ThresholdMethod):
         label = sitk.GetImageFromArray((inside * (1 + upper)).astype(np.uint8))
         label.CopyInformation(image)
         result.shape_label, result.label = result.label, label
+        result.quality = {"score": 2.5, "flagged": False}
         return result
 
 
@@ -610,8 +611,21 @@ def test_labels_of_a_structure_of_two_are_scored_each_and_a_derived_map_costs_no
         parts = dict(p.split(":") for p in two["dice_by_label"].split(";"))
         assert set(parts) == {"1", "2"} and all(float(d) > 0.8 for d in parts.values())
         assert dict(p.split(":") for p in plain["dice_by_label"].split(";"))["2"] == "0.000000"
+        # the segmenter's quality score is kept with both of its label maps
+        assert two["quality"] == plain["quality"] == 2.5
     by_label = summarise(rows)["by_label"]
     assert by_label["two"][2] > 0.8 and by_label["plain"][2] == 0.0
+    # a file written before the dice_by_label and quality columns still reads (and resumes)
+    path = tmp_path / "run" / "cases.csv"
+    header = [c for c in COLUMNS if c not in ("dice_by_label", "quality")]
+    with path.open(newline="") as fh:
+        old = [{c: r[c] for c in header} for r in csv.DictReader(fh)]
+    with path.open("w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=header)
+        writer.writeheader()
+        writer.writerows(old)
+    again = read_results(path)
+    assert len(again) == len(rows) and all(math.isnan(r["quality"]) for r in again)
 
 
 class LoggingMethod(ThresholdMethod):
