@@ -16,7 +16,10 @@ and writes, next to it:
   ``foreground_mean`` (nnU-Net's key; one structure is scored, the union of the chosen
   labels, so it holds the same per-method means), plus ``perturbation`` (per method and
   condition name: mean Dice, HD95, landmark errors, angle, scale, Dice loss, count);
-  written with ``sort_keys=True``, NaN and infinities as ``null``;
+  ``dice_by_label`` (per method, the mean Dice of each label of a reference of several)
+  and ``flagging`` (per method with a quality score: ROC AUC for telling cases under
+  Dice 0.75, :mod:`medseg.evaluation.flagging`); written with ``sort_keys=True``, NaN and
+  infinities as ``null``;
 * ``landmark_error_boxplot.png``: landmark error by method, as in the paper's Fig. 2(c),
   with a Dice panel;
 * ``perturbation.png``: mean Dice against the rotation angle and against the scale, and the
@@ -42,6 +45,7 @@ import numpy as np
 import SimpleITK as sitk
 
 from medseg.errors import InputFileError, MedsegError
+from medseg.evaluation.flagging import FAILURE_DICE, flagging_scores
 from medseg.evaluation.methods import METHOD_NAMES
 from medseg.evaluation.perturbation import CONDITIONS, UNPERTURBED, parse_condition
 from medseg.evaluation.results import SCORES, prediction_path, read_results
@@ -132,6 +136,7 @@ def summarise(rows: list[dict]) -> dict:
         "stats": stats,
         "perturbation": dict(perturbation),
         "by_label": _by_label(base),
+        "flagging": flagging_scores(base),
     }
 
 
@@ -208,6 +213,7 @@ def _markdown(summary: dict, title: str) -> str:
             ratio = other / ref if ref and np.isfinite(ref) else math.nan
             lines.append(f"- `{m}`: {_fmt(ratio, 2)} x")
     lines += _label_table(summary)
+    lines += _flagging_table(summary)
     lines += _perturbation_tables(summary)
     return "\n".join(lines) + "\n"
 
@@ -225,6 +231,28 @@ def _label_table(summary: dict) -> list[str]:
         if m in by_label:
             cells = [_fmt(by_label[m].get(v, math.nan)) for v in values]
             lines.append(f"| {m} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def _flagging_table(summary: dict) -> list[str]:
+    """How well each method's own quality score flags its failed cases."""
+    flagging = summary.get("flagging") or {}
+    methods = [m for m in summary["methods"] if m in flagging]
+    if not methods:
+        return []
+    lines = [
+        "",
+        f"Quality score against failure (Dice under {FAILURE_DICE:g}; unperturbed):",
+        "",
+        "| method | cases | failed | ROC AUC | flagged | failed and flagged |",
+        "|---|---:|---:|---:|---:|---:|",
+    ]
+    for m in methods:
+        f = flagging[m]
+        lines.append(
+            f"| {m} | {f['n']} | {f['failed']} | {_fmt(f['auc'])} | {f['flagged']} "
+            f"| {f['flagged_failed']} |"
+        )
     return lines
 
 
@@ -299,6 +327,8 @@ def _summary_json(rows: list[dict], summary: dict) -> str:
         "mean": means,
         "foreground_mean": means,
         "perturbation": summary["perturbation"],
+        "dice_by_label": summary["by_label"],
+        "flagging": summary["flagging"],
     }
     return json.dumps(_jsonable(payload), indent=2, sort_keys=True, allow_nan=False)
 

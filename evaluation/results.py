@@ -75,7 +75,9 @@ def _format(value) -> str:
 
 
 def _parse(row: dict) -> dict | None:
-    row = {**_OPTIONAL, **{k: v for k, v in row.items() if v is not None or k not in _OPTIONAL}}
+    # an optional column absent, or empty, takes its default
+    given = {k: v for k, v in row.items() if v not in (None, "") or k not in _OPTIONAL}
+    row = {**_OPTIONAL, **given}
     if set(COLUMNS) - set(row) or any(row[c] is None for c in COLUMNS):
         return None
     try:

@@ -232,3 +232,29 @@ def test_run_evaluation_refuses_bad_input_before_work(tmp_path):
             labels=(3,),
         )
     assert not any((tmp_path / d).exists() for d in "abcp")
+
+
+def test_the_quality_score_is_scored_against_the_failed_cases(tmp_path):
+    from medseg.evaluation.flagging import flagging_scores
+
+    dice = [0.9, 0.85, 0.6, 0.88, 0.7, 0.82]
+    quality = [0.5, 1.0, 4.0, 3.5, 2.0, 0.2]  # the two failures: 4.0 and 2.0; 3.5 a false alarm
+    rows = [
+        _row("shape_prior", f"c{i}", d, 1.0) | {"quality": q}
+        for i, (d, q) in enumerate(zip(dice, quality, strict=True))
+    ]
+    rows += [_row("asm", f"c{i}", d, 1.0) for i, d in enumerate(dice)]  # no score: left out
+    scores = flagging_scores(rows, threshold=3.0)
+    assert set(scores) == {"shape_prior"}
+    # failures {4.0, 2.0} against {0.5, 1.0, 3.5, 0.2}: 7 of the 8 pairs ordered
+    assert scores["shape_prior"] == {
+        "n": 6, "failed": 2, "auc": 7 / 8, "flagged": 2, "flagged_failed": 1
+    }  # fmt: skip
+    # no failure: no AUC, not a made-up 0.5
+    assert math.isnan(flagging_scores(rows, failure_dice=0.5)["shape_prior"]["auc"])
+    _write_csv(tmp_path, rows)
+    write_report(tmp_path)
+    text = (tmp_path / "summary.md").read_text(encoding="utf-8")
+    assert "Quality score against failure" in text
+    data = json.loads((tmp_path / "summary.json").read_text(encoding="utf-8"))
+    assert set(data["flagging"]) == {"shape_prior"} and data["flagging"]["shape_prior"]["n"] == 6
