@@ -581,3 +581,23 @@ def test_posed_copies_add_training_samples(blobs, small_settings):
     # up to the voxels the resampling puts within the radius)
     ratio = posed.n_samples_[:, 1].sum() / plain.n_samples_[:, 1].sum()
     assert 2.0 <= ratio <= 4.0
+
+
+def test_forests_on_one_job_score_as_scikit_learn_does(fitted, blobs):
+    """``forest_proba`` skips scikit-learn's thread pool on one job: the same sums in the
+    same order, so the same probabilities to the bit, for float64 and float32 rows."""
+    from medseg.detection._prediction import forest_features, forest_proba
+
+    image = blobs[7][0]
+    rows = forest_features(fitted, image, None).reshape(-1, fitted.n_features_)[::7]
+    for forest in fitted.forests_[:3]:
+        saved = forest.n_jobs
+        try:
+            forest.n_jobs = 1
+            expected = forest.predict_proba(rows)
+            for X in (rows.astype(np.float64), rows.astype(np.float32)):
+                got = forest_proba(forest, X)
+                assert got.dtype == np.float64 and np.array_equal(got, expected)
+            assert 0.0 < expected[:, 1].max() and expected[:, 1].min() < 1.0  # not constant
+        finally:
+            forest.n_jobs = saved

@@ -30,6 +30,7 @@ __all__ = [
     "forest_feature_names",
     "forest_features",
     "predict_cascade",
+    "forest_proba",
     "predict_rows",
     "probability_map",
     "scored_region",
@@ -183,20 +184,41 @@ def predict_rows(detector, X: np.ndarray, landmarks=None) -> np.ndarray:
     n_jobs = detector.n_jobs if X.shape[0] >= _THREADED_ROWS else 1
     for forest in detector.forests_:
         forest.n_jobs = n_jobs
+    if n_jobs == 1:
+        X = np.ascontiguousarray(X, dtype=np.float32)  # the trees' dtype, converted once
     if detector.mode == "per_landmark":
         for col, i in enumerate(landmarks):
             forest = detector.forests_[i]
             pos = np.flatnonzero(forest.classes_ == 1)
             if pos.size:
-                out[:, col] = forest.predict_proba(X)[:, pos[0]]
+                out[:, col] = forest_proba(forest, X)[:, pos[0]]
     else:
         forest = detector.forests_[0]
-        proba = forest.predict_proba(X)
+        proba = forest_proba(forest, X)
         lookup = {int(c): j for j, c in enumerate(forest.classes_)}
         for col, i in enumerate(landmarks):
             if i + 1 in lookup:
                 out[:, col] = proba[:, lookup[i + 1]]
     return out
+
+
+def forest_proba(forest, X: np.ndarray) -> np.ndarray:
+    """``forest.predict_proba(X)``, without its thread pool when the forest has one job.
+
+    A segmentation scores many small batches (every landmark's refinement neighbourhoods,
+    each by its own forest): scikit-learn's per-call set-up (a joblib pool over the trees,
+    its warning filters) then costs more than the trees. On one job the trees are summed
+    here in the forest's order, as scikit-learn sums them, so the result is the same to
+    the bit (``tests/test_detection.py``).
+    """
+    if forest.n_jobs not in (None, 1):
+        return forest.predict_proba(X)
+    X = np.asarray(X, dtype=np.float32)  # the trees' dtype (no copy when it already is)
+    total = np.zeros((X.shape[0], forest.n_classes_), dtype=np.float64)
+    for tree in forest.estimators_:
+        total += tree.predict_proba(X, check_input=False)
+    total /= len(forest.estimators_)
+    return total
 
 
 def region_keep(detector, X: np.ndarray) -> np.ndarray:

@@ -412,10 +412,12 @@ class TripletPrior(BaseEstimator):
         out = np.empty((n_cliques, n_lab, n_lab, n_lab), dtype=np.float32)
         mixtures = self._mixtures()
         inv_fn = INVARIANTS[self.invariant]
+        cand32 = cand.astype(np.float32)
         for start in range(0, n_cliques, chunk_size):
             sl = slice(start, min(start + chunk_size, n_cliques))
             cl = self.cliques_[sl]
-            xi, xj, xk = cand[cl[:, 0]], cand[cl[:, 1]], cand[cl[:, 2]]  # (c, L, 3)
+            # float32 from here: the tables are float32, and it halves the time
+            xi, xj, xk = (cand32[cl[:, q]] for q in range(3))  # (c, L, 3)
             d_ij = np.linalg.norm(xi[:, :, None] - xj[:, None], axis=-1)  # (c, a, b)
             d_jk = np.linalg.norm(xj[:, :, None] - xk[:, None], axis=-1)  # (c, b, d)
             d_ik = np.linalg.norm(xi[:, :, None] - xk[:, None], axis=-1)  # (c, a, d)
