@@ -204,6 +204,11 @@ def _markdown(summary: dict, title: str) -> str:
                 cell += f" ({s['n_finite']}/{s['n']})"
             cells.append(cell)
         lines.append(f"| {m} | {stats[m]['dice']['n']} | " + " | ".join(cells) + " |")
+    lines += ["", "Medians over the same cases:", "", "| method | Dice | HD95 (mm) | ASSD (mm) |"]
+    lines.append("|---|---:|---:|---:|")
+    for m in methods:
+        cells = [_fmt(stats[m][k]["median"]) for k in ("dice", "hd95", "assd")]
+        lines.append(f"| {m} | " + " | ".join(cells) + " |")
     main = methods[0] if methods else None
     if main is not None and len(methods) > 1:
         ref = stats[main]["landmark_error_mm"]["mean"]

@@ -119,3 +119,28 @@ def test_evaluated_as_a_method_with_nan_landmark_errors(tmp_path, phantoms):
     # the plumbing is tested here, the accuracy above.
     assert np.mean([r["dice"] for r in rows]) > 0.45
     assert len(list((tmp_path / "predictions" / "multi_atlas").iterdir())) == len(phantoms)
+
+
+def test_sub_labels_are_voted_inside_the_same_union(phantoms, segmented):
+    """A structure of two labels: the union is the binary vote's, voxel for voxel, and each
+    voxel of it takes the label most atlases give it."""
+    from medseg.datasets import Case, Cohort
+    from medseg.evaluation.metrics import dice_per_label
+
+    def halves(case):
+        label = case.load_label()
+        inside = sitk.GetArrayFromImage(label)
+        upper = np.arange(inside.shape[0])[:, None, None] > np.argwhere(inside)[:, 0].mean()
+        two = sitk.GetImageFromArray((inside * (1 + upper)).astype(np.uint8))
+        two.CopyInformation(label)
+        return Case(case.case_id, case.subject, case.load_image(), two, case.landmarks)
+
+    cohort = Cohort(cases=[halves(c) for c in phantoms], labels={"a": 1, "b": 2}, name="two")
+    model, target, binary, _ = segmented
+    two = clone(model).set_params(labels=(1, 2)).fit(cohort[1:]).segment(target)
+    values = sitk.GetArrayFromImage(two.label)
+    assert set(np.unique(values)) == {0, 1, 2}
+    np.testing.assert_array_equal(values > 0, sitk.GetArrayFromImage(binary.label) > 0)
+    np.testing.assert_array_equal(two.votes, binary.votes)
+    scores = dice_per_label(two.label, cohort[0].load_label())
+    assert set(scores) == {1, 2} and min(scores.values()) > 0.7

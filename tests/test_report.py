@@ -105,6 +105,11 @@ def test_report_files(tmp_path):
     text = out.read_text(encoding="utf-8")
     assert "| shape_prior | 2 | 0.800 ± 0.100 |" in text
     assert "- `asm`: 2.67 x" in text  # 4.0 / 1.5
+    # medians (asm's infinite HD95 skipped, as in the means)
+    assert (
+        "| shape_prior | 0.800 | 1.000 | 0.500 |" in text
+        and "| asm | 0.700 | 1.000 | 0.500 |" in text
+    )
     assert "## Pose perturbation" in text
     lines = text.splitlines()
     # by rotation angle: 0 (unperturbed), 45, 90

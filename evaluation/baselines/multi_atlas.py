@@ -6,8 +6,10 @@ initialisation (:func:`SimpleITK.CenteredTransformInitializer`, ``MOMENTS``: the
 intensity mass aligned), then an affine transform optimised for Mattes mutual information,
 coarse to fine (shrink factors 4, 2, 1 with Gaussian smoothing), linear interpolation of the
 moving image, regular-step gradient descent with parameter scales from physical shifts.
-Every atlas mask is resampled with nearest neighbour onto the test image's grid, and a voxel
-is foreground where a strict majority of the atlases say so.
+Every atlas label map is resampled with nearest neighbour onto the test image's grid; a
+voxel is inside the structure where a strict majority of the atlases say so, and takes the
+sub-label (hippocampus: 1 anterior, 2 posterior) most of them give it (ties: the smaller
+value). A single label gives a binary mask, as does every structure without sub-labels.
 
 Nothing in it is invariant to pose: the moments initialisation removes a translation only,
 and the affine optimisation is local, so large rotations are its weakness (what the
@@ -28,7 +30,7 @@ from sklearn.base import BaseEstimator
 from sklearn.utils import check_random_state
 
 from medseg.errors import CohortError, NotFittedError, ParameterError
-from medseg.io import read_image, select_labels
+from medseg.io import label_values, read_image, select_labels
 
 __all__ = ["MultiAtlasBaseline", "MultiAtlasResult", "SELECTIONS"]
 
@@ -44,9 +46,10 @@ class MultiAtlasResult:
     Attributes
     ----------
     label : SimpleITK image, uint8
-        Majority vote of the registered atlas masks, on the input image's grid exactly.
+        Majority vote of the registered atlas label maps, on the input image's grid exactly:
+        the training labels' values when there are several, else 1.
     votes : (z, y, x) int array
-        How many atlases put each voxel inside.
+        How many atlases put each voxel inside the structure (any of its labels).
     transforms : list of SimpleITK transforms
         Per atlas, the affine transform found (maps points of the input image into the
         atlas image), in the order of ``atlases_``.
@@ -108,7 +111,7 @@ class MultiAtlasBaseline(BaseEstimator):
     atlases_ : list of str
         Case ids of the atlases.
     atlas_images_ : list of SimpleITK images (float32)
-    atlas_masks_ : list of SimpleITK images (uint8, 0/1)
+    atlas_masks_ : list of SimpleITK images (uint8: the label values kept, or 0/1 for one label)
     seed_ : int
         Base seed of the registrations (atlas ``k`` uses ``seed_ + k``).
     """
@@ -210,10 +213,11 @@ class MultiAtlasBaseline(BaseEstimator):
         labels = tuple(int(v) for v in np.atleast_1d(self.labels))
         self.atlases_ = [cohort[i].case_id for i in chosen]
         self.atlas_images_ = [sitk.Cast(im, sitk.sitkFloat32) for im in images]
-        self.atlas_masks_ = [
-            select_labels(cohort[i].load_label(), labels, name=f"label map of {cohort[i].case_id}")
-            for i in chosen
-        ]
+        self.atlas_masks_ = []
+        for i in chosen:
+            label_map = cohort[i].load_label()
+            select_labels(label_map, labels, name=f"label map of {cohort[i].case_id}")  # not empty
+            self.atlas_masks_.append(label_values(label_map, labels))
         # sitk's seed 0 means "the wall clock": draw from [1, 2**31 - n].
         self.seed_ = int(rng.randint(1, 2**31 - 1 - n))
         return self
@@ -282,13 +286,20 @@ class MultiAtlasBaseline(BaseEstimator):
             )
         timings = {"registration": time.perf_counter() - t0}
         t0 = time.perf_counter()
-        votes = np.zeros(sitk.GetArrayViewFromImage(fixed).shape, dtype=np.int32)
+        values = sorted({int(v) for v in np.atleast_1d(self.labels)})
+        values = values if len(values) > 1 else [1]  # a single label is stored as 1
+        shape = sitk.GetArrayViewFromImage(fixed).shape
+        per_value = np.zeros((len(values),) + shape, dtype=np.int32)
         for mask, transform in zip(self.atlas_masks_, transforms, strict=True):
-            warped = sitk.Resample(
-                mask, target, transform, sitk.sitkNearestNeighbor, 0, sitk.sitkUInt8
+            warped = sitk.GetArrayFromImage(  # a copy: a view would outlive its image
+                sitk.Resample(mask, target, transform, sitk.sitkNearestNeighbor, 0, sitk.sitkUInt8)
             )
-            votes += sitk.GetArrayViewFromImage(warped)
-        label = sitk.GetImageFromArray((2 * votes > len(transforms)).astype(np.uint8))
+            for j, v in enumerate(values):
+                per_value[j] += warped == v
+        votes = per_value.sum(axis=0)
+        inside = 2 * votes > len(transforms)
+        winner = np.asarray(values, dtype=np.uint8)[np.argmax(per_value, axis=0)]
+        label = sitk.GetImageFromArray(np.where(inside, winner, 0).astype(np.uint8))
         label.CopyInformation(target)
         timings["voting"] = time.perf_counter() - t0
         return MultiAtlasResult(label=label, votes=votes, transforms=transforms, timings=timings)
