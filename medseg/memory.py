@@ -51,11 +51,12 @@ FALLBACK_LIMIT_BYTES = 4 * 2**30
 _GIB = 2**30
 #: Working memory of ``TripletPrior.potential_tables`` besides its result (its ``max_bytes``).
 POTENTIAL_CHUNK_BYTES = 256 * 2**20
-# Bytes per candidate triple of one chunk of potential_tables: the float64 invariant and
+# Bytes per candidate triple of one chunk of potential_tables: the float32 invariant and
 # its side sums, the mixture's running max / sum, centred and whitened coordinates, the
-# component's log-density and the exp temporaries (57 to 74 bytes measured with tracemalloc
-# on the D-dimensional densities of 2026-11-23). Also the rule that sizes the chunks.
-BYTES_PER_TRIPLE = 72
+# component's log-density and the exp temporaries (41 to 61 bytes measured with tracemalloc
+# on Gaussian and mixture densities on 2026-12-02, since the tables are computed in float32;
+# 57 to 74 in float64). Also the rule that sizes the chunks.
+BYTES_PER_TRIPLE = 52
 # float64 temporaries of OrientationPrior.tables per candidate triple of one chunk of
 # cliques: triangle normals and summed directions (3 components each), their dot product,
 # norms, the cosine and the cost (112 bytes measured with tracemalloc on 2026-11-24).
