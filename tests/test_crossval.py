@@ -615,7 +615,7 @@ def test_labels_of_a_structure_of_two_are_scored_each_and_a_derived_map_costs_no
         assert two["quality"] == plain["quality"] == 2.5
     by_label = summarise(rows)["by_label"]
     assert by_label["two"][2] > 0.8 and by_label["plain"][2] == 0.0
-    # a file written before the dice_by_label and quality columns still reads (and resumes)
+    # a file written before the dice_by_label and quality columns still reads
     path = tmp_path / "run" / "cases.csv"
     header = [c for c in COLUMNS if c not in ("dice_by_label", "quality")]
     with path.open(newline="") as fh:

@@ -184,8 +184,8 @@ def predict_rows(detector, X: np.ndarray, landmarks=None) -> np.ndarray:
     n_jobs = detector.n_jobs if X.shape[0] >= _THREADED_ROWS else 1
     for forest in detector.forests_:
         forest.n_jobs = n_jobs
-    if n_jobs == 1:
-        X = np.ascontiguousarray(X, dtype=np.float32)  # the trees' dtype, converted once
+    # the trees' dtype, converted once here rather than by every forest's call
+    X = np.ascontiguousarray(X, dtype=np.float32)
     if detector.mode == "per_landmark":
         for col, i in enumerate(landmarks):
             forest = detector.forests_[i]
