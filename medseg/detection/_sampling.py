@@ -108,9 +108,8 @@ def sample_landmark_voxels(
             hoods.append((np.empty(0, dtype=np.int64), np.empty(0)))
 
     # How many neighbourhoods hold each voxel: the union of the others' is where it is > own.
-    cover = np.zeros(n_vox, dtype=np.int32)
-    for flat, _ in hoods:
-        np.add.at(cover, flat, 1)
+    cover = np.bincount(np.concatenate([flat for flat, _ in hoods]), minlength=n_vox)
+    covered = cover > 0
     positives, negatives, pos_dist = [], [], []
     n_ring = n_negative // 3
     n_other = n_negative // 3
@@ -122,7 +121,8 @@ def sample_landmark_voxels(
             pos_dist.append(np.empty(0))
             continue
         flat, dist = hoods[i]
-        is_pos = dist <= r_pos
+        within = dist <= r_pos
+        is_pos = within.copy()
         is_pos[np.argmin(dist)] = True
         pos, pdist = flat[is_pos], dist[is_pos]
         if pos.size > max_positive:
@@ -137,16 +137,13 @@ def sample_landmark_voxels(
         ring = flat[~is_pos]
         ring = rng.choice(ring, min(n_ring, ring.size), replace=False) if ring.size else ring
 
-        own = np.zeros(n_vox, dtype=np.int32)
-        own[flat] = 1
-        pool = np.flatnonzero(cover - own > 0)  # in another landmark's neighbourhood, sorted
-        if pool.size:
-            pool_zyx = np.stack(np.unravel_index(pool, shape), axis=-1)
-            far = np.linalg.norm(voxel_to_physical(image, pool_zyx) - landmarks[i], axis=1) > r_pos
-            pool = pool[far]
-            other = rng.choice(pool, min(n_other, pool.size), replace=False) if pool.size else pool
-        else:
-            other = np.empty(0, dtype=np.int64)
+        # In another landmark's neighbourhood and farther than r_pos from this one: every
+        # voxel outside its own ball is (the ball's radius is at least r_pos), so only its
+        # own ball's voxels need their distance, and they have it already.
+        in_pool = covered.copy()
+        in_pool[flat[(cover[flat] == 1) | within]] = False
+        pool = np.flatnonzero(in_pool)
+        other = rng.choice(pool, min(n_other, pool.size), replace=False) if pool.size else pool
 
         n_u = n_uniform + (n_ring - ring.size) + (n_other - other.size)
         uni = rng.randint(0, n_vox, size=2 * n_u + 8)
