@@ -163,7 +163,7 @@ class BoundaryStage:
     jitter_mm : float, default 1.0
         Standard deviation of the noise added to the training landmarks (per landmark, and
         once more as a shift of the whole shape) before the template is warped onto them.
-    n_estimators : int, default 30
+    n_estimators : int, default 15
         Trees of the voxel classifier.
     rows_per_case : int, default 4000
         Voxels of each training case the classifier learns from (drawn from the band).
@@ -213,7 +213,7 @@ class BoundaryStage:
         *,
         band_mm: float = 4.0,
         jitter_mm: float = 1.0,
-        n_estimators: int = 30,
+        n_estimators: int = 15,
         rows_per_case: int = 4000,
         smoothness: tuple = (0.25, 0.5, 1.0, 2.0),
         shape_weight: tuple = (0.0, 0.1, 0.3, 1.0),
