@@ -126,7 +126,12 @@ def _evaluate(classifier, cases) -> dict:
         losses.append(log_loss(truth[nodes], np.clip(probabilities, 1e-6, 1), labels=[0, 1, 2]))
         for smooth, weight in PAIRS:
             cut = _cut(
-                view, probabilities, nodes, band_mm=4.0, smoothness=smooth, shape_weight=weight
+                view,
+                probabilities,
+                nodes,
+                band_mm=stage.band_mm,
+                smoothness=smooth,
+                shape_weight=weight,
             )
             dices[(smooth, weight)].append(_dice_scores(cut, truth, view.values))
     return {
