@@ -105,16 +105,6 @@ def _cases(cohort, indices, seed: int, jobs: int) -> list:
     ]
 
 
-def _rows(cases, rows_per_case: int, seed: int):
-    rng = np.random.RandomState(seed)
-    X, y = [], []
-    for _, truth, nodes, features in cases:
-        take = rng.permutation(len(features))[:rows_per_case]
-        X.append(features[take])
-        y.append(truth[nodes][take])
-    return np.vstack(X).astype(np.float32), np.concatenate(y)
-
-
 def _evaluate(classifier, cases) -> dict:
     stage = BoundaryStage()
     stage.values_ = LABELS
@@ -162,7 +152,9 @@ def main(argv=None) -> int:
     cases = _cases(cohort, train + test, args.seed, args.jobs)
     train_cases = [c for c in cases[: len(train)] if c is not None]
     test_cases = [c for c in cases[len(train) :] if c is not None]
-    X, y = _rows(train_cases, BoundaryStage().rows_per_case, args.seed)
+    # the rows as the stage draws them (``rows_per_case`` of each case)
+    rng = np.random.RandomState(args.seed)
+    X, y = BoundaryStage()._rows(train_cases, range(len(train_cases)), rng)
     print(f"{len(train_cases)} training cases ({len(X)} rows), {len(test_cases)} test cases")
     results = {}
     for name in names:
