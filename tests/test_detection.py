@@ -355,15 +355,26 @@ def test_trees_grow_on_at_most_max_tree_samples_rows(blobs, small_settings):
         LandmarkDetector(max_tree_samples=0, **kwargs).fit(images, lms)
 
 
-def test_same_seed_same_candidates(blobs, small_settings):
+def test_same_seed_same_candidates_whatever_the_jobs(blobs, small_settings):
+    """The training copies (scaled and posed) run on threads, each with its own seed: the
+    model depends on ``random_state``, not on ``n_jobs`` or the order copies finish in."""
     kwargs = dict(
-        features=small_settings, n_estimators=4, n_negative=60, n_mining_pool=2000, random_state=3
+        features=small_settings,
+        n_estimators=4,
+        n_negative=60,
+        n_mining_pool=2000,
+        augment_poses=1,
     )
     train = ([b[0] for b in blobs[:3]], [b[1] for b in blobs[:3]])
-    a = LandmarkDetector(**kwargs).fit(*train).candidates(blobs[8][0], n_candidates=5)
-    b = LandmarkDetector(**kwargs).fit(*train).candidates(blobs[8][0], n_candidates=5)
+
+    def candidates(seed, jobs):
+        detector = LandmarkDetector(**kwargs, random_state=seed, n_jobs=jobs).fit(*train)
+        return detector.candidates(blobs[8][0], n_candidates=5)
+
+    a, b, other = candidates(3, 1), candidates(3, 2), candidates(4, 2)
     np.testing.assert_array_equal(a.positions, b.positions)
     np.testing.assert_array_equal(a.probabilities, b.probabilities)
+    assert not np.array_equal(a.probabilities, other.probabilities)
 
 
 def test_candidates_structure_and_min_distance(fitted, blobs):

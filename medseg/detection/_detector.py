@@ -120,7 +120,9 @@ class LandmarkDetector(BaseEstimator):
     random_state : int, RandomState or None
         Seeds the sampling and the forests; the same seed gives the same detector.
     n_jobs : int
-        Threads used by the forests (fit and predict).
+        Threads used by the forests (fit and predict) and by the training copies' features
+        and samples (each thread holds one copy's feature maps, which the memory check
+        bounds one at a time); the detector does not depend on it.
     verbose : bool
         Show tqdm progress on a terminal.
 

@@ -20,6 +20,7 @@ from collections.abc import Sequence
 
 import numpy as np
 import SimpleITK as sitk
+from joblib import Parallel, delayed
 from scipy.spatial.transform import Rotation
 from sklearn.ensemble import ExtraTreesClassifier, RandomForestClassifier
 from sklearn.utils import check_random_state
@@ -185,30 +186,20 @@ def _fit_stage(detector, images, landmarks, n_lm, features_of, rng) -> None:
         for k, (image, pts) in enumerate(zip(images, landmarks, strict=True))
         for copy in copies
     ]
-    for k, image, pts, (kind, factor) in tqdm(jobs, desc="features", disable=not progress):
-        if kind == "scale":
-            image, pts = _scaled(image, pts, factor)
-        else:
-            image, pts = _posed(image, pts, detector, rng)
-        check_feature_memory(image, image.GetSize()[::-1], detector.features)
-        feats = features_of(k, image)
-        flat = feats.reshape(-1, feats.shape[-1])
-        samples = sample_landmark_voxels(
-            image,
-            pts,
-            positive_radius_mm=float(detector.positive_radius_mm),
-            n_negative=int(detector.n_negative),
-            max_positive=int(detector.max_positive),
-            random_state=rng,
-        )
+    # one seed per copy, drawn up front: the copies run in any order, on any thread count,
+    # and give the same samples
+    copy_seeds = rng.randint(np.iinfo(np.int32).max, size=len(jobs))
+    run = Parallel(n_jobs=detector.n_jobs, prefer="threads", return_as="generator")
+    samples = run(
+        delayed(_copy_samples)(detector, features_of, *job, n_pool, int(seed))
+        for job, seed in zip(jobs, copy_seeds, strict=True)
+    )
+    for pos, neg, pool in tqdm(samples, total=len(jobs), desc="features", disable=not progress):
         for i in range(n_lm):
-            X_pos[i].append(flat[samples.positives[i]])
-            X_neg[i].append(flat[samples.negatives[i]])
-        if n_pool:
-            idx = rng.choice(flat.shape[0], min(n_pool, flat.shape[0]), replace=False)
-            zyx = np.stack(np.unravel_index(idx, feats.shape[:3]), axis=-1)
-            pools.append((flat[idx].copy(), voxel_to_physical(image, zyx), pts))
-        del feats, flat
+            X_pos[i].append(pos[i])
+            X_neg[i].append(neg[i])
+        if pool is not None:
+            pools.append(pool)
     X_pos = [np.concatenate(x) for x in X_pos]
     X_neg = [np.concatenate(x) for x in X_neg]
     missing = [i for i in range(n_lm) if X_pos[i].shape[0] == 0]
@@ -234,6 +225,39 @@ def _fit_stage(detector, images, landmarks, n_lm, features_of, rng) -> None:
     detector.feature_names_ = forest_feature_names(detector)
     detector.n_features_ = len(detector.feature_names_)
     detector.n_dims_ = 3
+
+
+def _copy_samples(detector, features_of, k, image, pts, copy, n_pool: int, seed: int):
+    """One training copy's positive and negative rows per landmark, and its mining pool.
+
+    The copy is the image scaled or posed (``copy``), its features computed and its voxels
+    sampled with a generator of its own (``seed``), so that copies can run in parallel.
+    """
+    rng = np.random.RandomState(seed)
+    kind, factor = copy
+    if kind == "scale":
+        image, pts = _scaled(image, pts, factor)
+    else:
+        image, pts = _posed(image, pts, detector, rng)
+    check_feature_memory(image, image.GetSize()[::-1], detector.features)
+    feats = features_of(k, image)
+    flat = feats.reshape(-1, feats.shape[-1])
+    samples = sample_landmark_voxels(
+        image,
+        pts,
+        positive_radius_mm=float(detector.positive_radius_mm),
+        n_negative=int(detector.n_negative),
+        max_positive=int(detector.max_positive),
+        random_state=rng,
+    )
+    pos = [flat[p] for p in samples.positives]
+    neg = [flat[q] for q in samples.negatives]
+    pool = None
+    if n_pool:
+        idx = rng.choice(flat.shape[0], min(n_pool, flat.shape[0]), replace=False)
+        zyx = np.stack(np.unravel_index(idx, feats.shape[:3]), axis=-1)
+        pool = (flat[idx], voxel_to_physical(image, zyx), pts)
+    return pos, neg, pool
 
 
 # ---------------------------------------------------------------------------------- forests
