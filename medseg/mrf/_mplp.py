@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 
+from medseg.mrf._decode import sequential_decode
 from medseg.mrf._kernels import (
     all_min_marginals,
     beliefs,
     chunks,
     forbidden_cost,
-    min_to_axis,
     working_tables,
 )
 from medseg.mrf._model import MRF
@@ -54,41 +54,6 @@ def _incidence(scopes: dict[int, np.ndarray], n: int) -> list[list[tuple[int, in
             for i in np.flatnonzero(np.diff(bounds)):
                 lists[i].append((k, q, order[bounds[i] : bounds[i + 1]]))
     return lists
-
-
-def _sequential_decode(belief, scopes, tables, lam, incidence, big):
-    """Fix variables one at a time, most confident first, on the reparametrised energy.
-
-    ``E(x) = sum_i belief_i(x_i) + sum_f (T_f - sum_q lam_fq)(x_f)``; each variable takes
-    the label minimising its belief plus, for every factor on it, the smallest
-    reparametrised cost compatible with the labels already fixed.
-    """
-    n, lab = belief.shape
-    srt = np.sort(belief, axis=1)
-    margin = srt[:, 1] - srt[:, 0] if lab > 1 else np.zeros(n)
-    x = np.full(n, -1, dtype=np.int64)
-    penalty = np.float32(big)
-    for i in np.argsort(-margin, kind="stable"):
-        cost = belief[i].copy()
-        for k, q, f in incidence[i]:
-            sc = scopes[k][f]
-            lf = lam[k][f].astype(np.float32)
-            others = {}
-            for r in range(k):
-                if r == q:
-                    continue
-                v = -lf[:, r]
-                xr = x[sc[:, r]]
-                fixed = xr >= 0
-                if fixed.any():
-                    mask = np.full((fixed.sum(), lab), penalty)
-                    mask[np.arange(fixed.sum()), xr[fixed]] = 0.0
-                    v[fixed] += mask
-                others[r] = v
-            m = min_to_axis(tables[k][f], others, q) - lf[:, q]
-            cost += m.sum(axis=0, dtype=np.float64)
-        x[i] = int(np.argmin(cost))
-    return x
 
 
 def _dual_certificate(theta, scopes, tables, lam, n, lab):
@@ -157,7 +122,6 @@ def solve_mplp(
         for s, e in zip(starts.tolist(), np.r_[starts[1:], len(g)].tolist(), strict=True):
             blocks[int(sc[s])].append((k, slice(s, e)))
 
-    incidence = _incidence(scopes, n)
     belief = beliefs(theta, scopes, lam)  # kept up to date by every factor update
     primal = PrimalTracker(mrf, local_search=local_search)
     best_lb = -np.inf
@@ -180,7 +144,7 @@ def solve_mplp(
         lb = float(belief.min(axis=1).sum())
         primal.offer(belief.argmin(axis=1))
         if it % decode_every == 1 or decode_every == 1:
-            primal.offer(_sequential_decode(belief, scopes, tables, lam, incidence, big))
+            primal.offer(sequential_decode(belief, scopes, tables, lam))
         best_lb = max(best_lb, lb)
         hist_e.append(primal.energy)
         hist_lb.append(best_lb)

@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from medseg.mrf._decode import sequential_decode
 from medseg.mrf._kernels import beliefs, chunks, forbidden_cost, min_to_axis
 from medseg.mrf._model import MRF
-from medseg.mrf._mplp import _dual_certificate, _incidence, _sequential_decode
+from medseg.mrf._mplp import _dual_certificate, _incidence
 from medseg.mrf._primal import Clock, PrimalTracker, certified_result, gap_closed
 from medseg.mrf._result import SolveResult
 
@@ -179,7 +180,7 @@ def solve_srmp(
         best_lb = max(best_lb, lb)
         primal.offer(full.argmin(axis=1))
         if it <= 3 or it % decode_every == 0:
-            primal.offer(_sequential_decode(full, scopes, tables, msg, incidence, big))
+            primal.offer(sequential_decode(full, scopes, tables, msg))
         hist_e.append(primal.energy)
         hist_lb.append(best_lb)
         progress.update(1)
