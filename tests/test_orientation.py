@@ -87,6 +87,18 @@ def test_orientation_prior_penalises_the_mirror_labelling_only():
     )
     manual = 0.5 * (1 - prior.reference_ * conf) * prior.penalty_
     np.testing.assert_allclose(one, manual, rtol=1e-5, atol=1e-6)
+    # and every other triple (directions differing between candidates too), one candidate
+    # list broadcast against the others
+    dirs = rng.normal(size=dirs.shape)
+    dirs /= np.linalg.norm(dirs, axis=-1, keepdims=True)
+    tables = prior.tables(cand, dirs, chunk_size=5)
+    every = triangle_orientation(
+        cand[i][:, :, None, None], cand[j][:, None, :, None], cand[k][:, None, None, :],
+        dirs[i][:, :, None, None], dirs[j][:, None, :, None], dirs[k][:, None, None, :],
+    )  # fmt: skip
+    ref = prior.reference_[:, None, None, None]
+    expected = 0.5 * (1 - ref * every) * prior.penalty_[:, None, None, None]
+    np.testing.assert_allclose(tables, expected, rtol=1e-5, atol=1e-6)
 
 
 def test_orientation_prior_save_load_round_trip_and_errors(tmp_path):

@@ -49,6 +49,30 @@ def triangle_orientation(xi, xj, xk, gi, gj, gk) -> np.ndarray:
     return np.divide(dot, scale, out=np.zeros_like(dot, dtype=float), where=scale > 1e-12)
 
 
+def _orientation_grid(xi, xj, xk, gi, gj, gk) -> np.ndarray:
+    """:func:`triangle_orientation` of every triple of three candidate lists, per clique.
+
+    ``xi, xj, xk, gi, gj, gk``: (c, L, 3). Returns (c, L, L, L) with ``[:, a, b, d]`` the
+    triangle ``(xi[a], xj[b], xk[d])``. The edges and the pairwise sums are formed on
+    ``L x L`` grids and only the products that need all three corners on ``L x L x L``, one
+    coordinate at a time: twice as fast as broadcasting the vector operations.
+    """
+    e1 = xj[:, None, :, :] - xi[:, :, None, :]  # (c, a, b, 3)
+    e2 = xk[:, None, :, :] - xi[:, :, None, :]  # (c, a, d, 3)
+    g_ab = gi[:, :, None, :] + gj[:, None, :, :]
+    shape = (len(xi), xi.shape[1], xj.shape[1], xk.shape[1])
+    dot, nn, gg = np.zeros(shape), np.zeros(shape), np.zeros(shape)
+    for p, q, r in ((0, 1, 2), (1, 2, 0), (2, 0, 1)):
+        normal = e1[:, :, :, None, q] * e2[:, :, None, :, r]
+        normal -= e1[:, :, :, None, r] * e2[:, :, None, :, q]
+        direction = g_ab[:, :, :, None, p] + gk[:, None, None, :, p]
+        dot += normal * direction
+        nn += normal * normal
+        gg += direction * direction
+    scale = np.sqrt(nn * gg)
+    return np.divide(dot, scale, out=np.zeros(shape), where=scale > 1e-12)
+
+
 def _cost(cos, reference, penalty):
     """``(1 - r cos) / 2`` of the penalty: 0 facing the learned way, all of it facing away."""
     return 0.5 * (1.0 - reference * cos) * penalty
@@ -179,10 +203,7 @@ class OrientationPrior(BaseEstimator):
         for start in range(0, len(self.cliques_), int(chunk_size)):
             sl = slice(start, start + int(chunk_size))
             i, j, k = self.cliques_[sl].T
-            cos = triangle_orientation(
-                cand[i][:, :, None, None], cand[j][:, None, :, None], cand[k][:, None, None, :],
-                dirs[i][:, :, None, None], dirs[j][:, None, :, None], dirs[k][:, None, None, :],
-            )  # fmt: skip
+            cos = _orientation_grid(cand[i], cand[j], cand[k], dirs[i], dirs[j], dirs[k])
             out[sl] = _cost(
                 cos, self.reference_[sl, None, None, None], penalty[sl, None, None, None]
             )
