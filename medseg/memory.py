@@ -58,9 +58,10 @@ POTENTIAL_CHUNK_BYTES = 256 * 2**20
 # 57 to 74 in float64). Also the rule that sizes the chunks.
 BYTES_PER_TRIPLE = 52
 # float64 temporaries of OrientationPrior.tables per candidate triple of one chunk of
-# cliques: triangle normals and summed directions (3 components each), their dot product,
-# norms, the cosine and the cost (112 bytes measured with tracemalloc on 2026-11-24).
-ORIENTATION_BYTES_PER_TRIPLE = 112
+# cliques: the dot product and the two squared norms summed over the coordinates, one
+# coordinate's normal, direction and product, then the scale, the cosine and the cost
+# (60-80 bytes measured with tracemalloc on 2026-12-03, L = 12..30, chunks of 4 and 16).
+ORIENTATION_BYTES_PER_TRIPLE = 72
 _KERNEL_CHUNK = 8 * 2**20  # medseg.mrf._kernels.CHUNK_BYTES
 _SRMP_PREGATHER = 512 * 2**20  # medseg.mrf._srmp.PREGATHER_BYTES
 
