@@ -1,0 +1,146 @@
+"""Less work at segment time, and what it costs: settings compared pairwise on held-out cases.
+
+Usage::
+
+    python benchmarks/bench_settings.py --model MODEL --out settings.json [--data DIR]
+        [--test-subjects 40] [--seed 0] [--jobs 2] [--shard 0 --n-shards 1]
+        [--setting NAME:param=value,param=value ...]
+    python benchmarks/bench_settings.py --summary settings_0.json settings_1.json
+
+The hippocampus subjects (``subjects.csv``) are permuted with ``--seed``; every case of the
+first ``--test-subjects`` is held out and the model (labels 1+2, defaults, seeded) is trained
+on the cases of the others, or ``--model`` is loaded when it holds one (else the trained model
+is saved there). Each held-out case is then segmented once per setting, on one thread, with
+the model's segment-time parameters changed (``n_candidates``, ``n_hypotheses``, ``max_iter``,
+``refine_levels``, ...): Dice of the union of the labels and seconds, paired with the first
+setting. ``--shard`` / ``--n-shards`` split the cases over processes (the seconds of
+processes run side by side are comparable with each other, not with a lone run). Nothing is
+written into the repository.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from medseg.datasets import load_cohort
+from medseg.evaluation.metrics import dice
+from medseg.io import select_labels
+
+LABELS = (1, 2)
+DEFAULT_SETTINGS = (
+    "L20_H4:",
+    "L15_H4:n_candidates=15",
+    "L12_H4:n_candidates=12",
+    "L20_H2:n_hypotheses=2",
+    "L15_H2:n_candidates=15,n_hypotheses=2",
+)
+
+
+def _default_data() -> Path:
+    return Path(__file__).resolve().parents[2] / "shared" / "data" / "hippocampus"
+
+
+def _held_out(cohort, n_subjects: int, seed: int) -> tuple[list[int], list[int]]:
+    """Training and test cases: every case of ``n_subjects`` permuted subjects is tested."""
+    subjects = np.asarray(cohort.subjects)
+    held = set(np.random.default_rng(seed).permutation(np.unique(subjects))[:n_subjects])
+    test = [i for i, s in enumerate(subjects) if s in held]
+    return [i for i in range(len(subjects)) if i not in set(test)], test
+
+
+def _setting(text: str) -> tuple[str, dict]:
+    """``NAME:param=value,...`` (values read as JSON) of one setting."""
+    name, _, rest = text.partition(":")
+    params = {}
+    for item in filter(None, rest.split(",")):
+        key, _, value = item.partition("=")
+        params[key] = json.loads(value)
+    return name, params
+
+
+def _summary(paths: list[Path]) -> None:
+    merged: dict = {}
+    for path in paths:
+        for name, rows in json.loads(path.read_text()).items():
+            got = merged.setdefault(name, {"dice": [], "seconds": []})
+            got["dice"] += rows["dice"]
+            got["seconds"] += rows["seconds"]
+    first = next(iter(merged))
+    base_d, base_t = (np.asarray(merged[first][k]) for k in ("dice", "seconds"))
+    print(f"{len(base_d)} cases; paired with {first}")
+    print("| setting | Dice mean | median | min | paired diff ± s.e. | better / worse "
+          "| s median | time ratio |")  # fmt: skip
+    print("|---|---|---|---|---|---|---|---|")
+    for name, rows in merged.items():
+        d, t = np.asarray(rows["dice"]), np.asarray(rows["seconds"])
+        diff = d - base_d
+        se = diff.std(ddof=1) / np.sqrt(len(d)) if len(d) > 1 else float("nan")
+        print(
+            f"| {name} | {d.mean():.4f} | {np.median(d):.4f} | {d.min():.3f} | "
+            f"{diff.mean():+.4f} ± {se:.4f} | {(diff > 0).sum()} / {(diff < 0).sum()} | "
+            f"{np.median(t):.2f} | {np.median(t / base_t):.2f} |"
+        )
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--data", type=Path, default=_default_data())
+    parser.add_argument("--model", type=Path, default=None)
+    parser.add_argument("--out", type=Path, default=None, help="JSON of this shard's figures.")
+    parser.add_argument("--test-subjects", type=int, default=40)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--jobs", type=int, default=2, help="Training jobs.")
+    parser.add_argument("--shard", type=int, default=0)
+    parser.add_argument("--n-shards", type=int, default=1)
+    parser.add_argument("--setting", action="append", default=None, help="NAME:param=value,...")
+    parser.add_argument("--summary", type=Path, nargs="+", default=None)
+    args = parser.parse_args(argv)
+    if args.summary:
+        _summary(args.summary)
+        return 0
+    if args.out is None:
+        parser.error("--out is required unless --summary")
+
+    from medseg.segmenter import ShapePriorSegmenter, load_model
+
+    cohort = load_cohort(args.data)
+    train, test = _held_out(cohort, args.test_subjects, args.seed)
+    if args.model is not None and (args.model / "model.json").is_file():
+        model = load_model(args.model)
+    else:
+        t0 = time.perf_counter()
+        model = ShapePriorSegmenter(labels=LABELS, random_state=args.seed, n_jobs=args.jobs)
+        model.fit(cohort[train])
+        print(f"trained on {len(train)} cases in {time.perf_counter() - t0:.0f} s", flush=True)
+        if args.model is not None:
+            model.save(args.model)
+    model.n_jobs = 1
+    model.detector_.n_jobs = 1
+    settings = dict(_setting(s) for s in (args.setting or DEFAULT_SETTINGS))
+    models = {name: copy.copy(model).set_params(**p) for name, p in settings.items()}
+    out = {name: {"dice": [], "seconds": []} for name in settings}
+    cases = test[args.shard :: args.n_shards]
+    model.segment(cohort[cases[0]].load_image())  # warm-up, not counted
+    for i in cases:
+        image = cohort[i].load_image()
+        reference = select_labels(cohort[i].load_label(), LABELS)
+        for name, m in models.items():
+            t0 = time.perf_counter()
+            seg = m.segment(image)
+            out[name]["seconds"].append(time.perf_counter() - t0)
+            out[name]["dice"].append(dice(seg.label, reference))
+        print(cohort[i].case_id, {k: round(v["dice"][-1], 3) for k, v in out.items()}, flush=True)
+    args.out.write_text(json.dumps(out))
+    _summary([args.out])
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
