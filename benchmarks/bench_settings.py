@@ -5,6 +5,7 @@ Usage::
     python benchmarks/bench_settings.py --model MODEL --out settings.json [--data DIR]
         [--test-subjects 40] [--seed 0] [--jobs 2] [--shard 0 --n-shards 1]
         [--setting NAME:param=value,param=value ...]
+    python benchmarks/bench_settings.py --phantom-folds 5 --out phantom.json
     python benchmarks/bench_settings.py --summary settings_0.json settings_1.json
 
 The hippocampus subjects (``subjects.csv``) are permuted with ``--seed``; every case of the
@@ -14,8 +15,11 @@ is saved there). Each held-out case is then segmented once per setting, on one t
 the model's segment-time parameters changed (``n_candidates``, ``n_hypotheses``, ``max_iter``,
 ``refine_levels``, ...): Dice of the union of the labels and seconds, paired with the first
 setting. ``--shard`` / ``--n-shards`` split the cases over processes (the seconds of
-processes run side by side are comparable with each other, not with a lone run). Nothing is
-written into the repository.
+processes run side by side are comparable with each other, not with a lone run).
+``--phantom-folds K`` runs the same comparison on the README's phantom protocol instead
+(``make_phantom_cohort(20, random_state=seed)``, label 1, K folds by subject with the
+evaluation's fold seeds, a model trained per fold), and also records the mean landmark error
+(mm). Nothing is written into the repository.
 """
 
 from __future__ import annotations
@@ -34,6 +38,7 @@ from medseg.evaluation.metrics import dice
 from medseg.io import select_labels
 
 LABELS = (1, 2)
+PHANTOM_LABELS = (1,)
 DEFAULT_SETTINGS = (
     "L20_H4:",
     "L15_H4:n_candidates=15",
@@ -69,15 +74,15 @@ def _summary(paths: list[Path]) -> None:
     merged: dict = {}
     for path in paths:
         for name, rows in json.loads(path.read_text()).items():
-            got = merged.setdefault(name, {"dice": [], "seconds": []})
-            got["dice"] += rows["dice"]
-            got["seconds"] += rows["seconds"]
+            got = merged.setdefault(name, {})
+            for key, values in rows.items():
+                got[key] = got.get(key, []) + values
     first = next(iter(merged))
     base_d, base_t = (np.asarray(merged[first][k]) for k in ("dice", "seconds"))
     print(f"{len(base_d)} cases; paired with {first}")
     print("| setting | Dice mean | median | min | paired diff ± s.e. | better / worse "
-          "| s median | time ratio |")  # fmt: skip
-    print("|---|---|---|---|---|---|---|---|")
+          "| s median | time ratio | landmark error, mm |")  # fmt: skip
+    print("|---|---|---|---|---|---|---|---|---|")
     for name, rows in merged.items():
         d, t = np.asarray(rows["dice"]), np.asarray(rows["seconds"])
         diff = d - base_d
@@ -85,8 +90,47 @@ def _summary(paths: list[Path]) -> None:
         print(
             f"| {name} | {d.mean():.4f} | {np.median(d):.4f} | {d.min():.3f} | "
             f"{diff.mean():+.4f} ± {se:.4f} | {(diff > 0).sum()} / {(diff < 0).sum()} | "
-            f"{np.median(t):.2f} | {np.median(t / base_t):.2f} |"
+            f"{np.median(t):.2f} | {np.median(t / base_t):.2f} | "
+            + (f"{np.mean(rows['error']):.2f} |" if "error" in rows else "— |")
         )
+
+
+def _score(model, settings, cohort, cases, labels, out, *, error: bool = False) -> None:
+    """Segment ``cases`` with every setting of ``model`` on one thread; append to ``out``
+    (with ``error`` also the mean distance of the landmarks to the case's own, mm)."""
+    model.n_jobs = 1
+    model.detector_.n_jobs = 1
+    models = {name: copy.copy(model).set_params(**p) for name, p in settings.items()}
+    model.segment(cohort[cases[0]].load_image())  # warm-up, not counted
+    for i in cases:
+        case = cohort[i]
+        image = case.load_image()
+        reference = select_labels(case.load_label(), labels)
+        truth = case.load_landmarks() if error else None
+        for name, m in models.items():
+            t0 = time.perf_counter()
+            seg = m.segment(image)
+            out[name]["seconds"].append(time.perf_counter() - t0)
+            out[name]["dice"].append(dice(seg.label, reference))
+            if truth is not None:
+                error = np.linalg.norm(seg.landmarks - truth, axis=1).mean()
+                out[name]["error"].append(float(error))
+        print(case.case_id, {k: round(v["dice"][-1], 3) for k, v in out.items()}, flush=True)
+
+
+def _phantom(settings, n_folds: int, seed: int, jobs: int) -> dict:
+    """The settings on the phantom, ``n_folds`` folds by subject, a model per fold."""
+    from medseg.datasets import make_phantom_cohort
+    from medseg.evaluation.folds import fold_seed, make_folds
+    from medseg.segmenter import ShapePriorSegmenter
+
+    cohort = make_phantom_cohort(20, random_state=seed)
+    out = {name: {"dice": [], "error": [], "seconds": []} for name in settings}
+    for fold, (train, test) in enumerate(make_folds(cohort, n_folds)):
+        model = ShapePriorSegmenter(random_state=fold_seed(seed, fold), n_jobs=jobs)
+        model.fit(cohort[train])
+        _score(model, settings, cohort, [int(i) for i in test], PHANTOM_LABELS, out, error=True)
+    return out
 
 
 def main(argv=None) -> int:
@@ -100,6 +144,7 @@ def main(argv=None) -> int:
     parser.add_argument("--shard", type=int, default=0)
     parser.add_argument("--n-shards", type=int, default=1)
     parser.add_argument("--setting", action="append", default=None, help="NAME:param=value,...")
+    parser.add_argument("--phantom-folds", type=int, default=0, help="Phantom K-fold instead.")
     parser.add_argument("--summary", type=Path, nargs="+", default=None)
     args = parser.parse_args(argv)
     if args.summary:
@@ -110,6 +155,12 @@ def main(argv=None) -> int:
 
     from medseg.segmenter import ShapePriorSegmenter, load_model
 
+    settings = dict(_setting(s) for s in (args.setting or DEFAULT_SETTINGS))
+    if args.phantom_folds:
+        out = _phantom(settings, args.phantom_folds, args.seed, args.jobs)
+        args.out.write_text(json.dumps(out))
+        _summary([args.out])
+        return 0
     cohort = load_cohort(args.data)
     train, test = _held_out(cohort, args.test_subjects, args.seed)
     if args.model is not None and (args.model / "model.json").is_file():
@@ -121,22 +172,8 @@ def main(argv=None) -> int:
         print(f"trained on {len(train)} cases in {time.perf_counter() - t0:.0f} s", flush=True)
         if args.model is not None:
             model.save(args.model)
-    model.n_jobs = 1
-    model.detector_.n_jobs = 1
-    settings = dict(_setting(s) for s in (args.setting or DEFAULT_SETTINGS))
-    models = {name: copy.copy(model).set_params(**p) for name, p in settings.items()}
     out = {name: {"dice": [], "seconds": []} for name in settings}
-    cases = test[args.shard :: args.n_shards]
-    model.segment(cohort[cases[0]].load_image())  # warm-up, not counted
-    for i in cases:
-        image = cohort[i].load_image()
-        reference = select_labels(cohort[i].load_label(), LABELS)
-        for name, m in models.items():
-            t0 = time.perf_counter()
-            seg = m.segment(image)
-            out[name]["seconds"].append(time.perf_counter() - t0)
-            out[name]["dice"].append(dice(seg.label, reference))
-        print(cohort[i].case_id, {k: round(v["dice"][-1], 3) for k, v in out.items()}, flush=True)
+    _score(model, settings, cohort, test[args.shard :: args.n_shards], LABELS, out)
     args.out.write_text(json.dumps(out))
     _summary([args.out])
     return 0
