@@ -60,7 +60,7 @@ BYTES_PER_TRIPLE = 52
 # float64 temporaries of OrientationPrior.tables per candidate triple of one chunk of
 # cliques: the dot product and the two squared norms summed over the coordinates, one
 # coordinate's normal, direction and product, then the scale, the cosine and the cost
-# (60-80 bytes measured with tracemalloc on 2026-12-03, L = 12..30, chunks of 4 and 16).
+# (60-80 bytes measured with tracemalloc on 2026-12-04, L = 12..30, chunks of 4 and 16).
 ORIENTATION_BYTES_PER_TRIPLE = 72
 _KERNEL_CHUNK = 8 * 2**20  # medseg.mrf._kernels.CHUNK_BYTES
 _SRMP_PREGATHER = 512 * 2**20  # medseg.mrf._srmp.PREGATHER_BYTES
