@@ -71,11 +71,13 @@ def _setting(text: str) -> tuple[str, dict]:
 
 
 def _summary(paths: list[Path]) -> None:
+    runs = [json.loads(path.read_text()) for path in paths]
+    shared = [name for name in runs[0] if all(name in run for run in runs)]  # paired only
     merged: dict = {}
-    for path in paths:
-        for name, rows in json.loads(path.read_text()).items():
+    for run in runs:
+        for name in shared:
             got = merged.setdefault(name, {})
-            for key, values in rows.items():
+            for key, values in run[name].items():
                 got[key] = got.get(key, []) + values
     first = next(iter(merged))
     base_d, base_t = (np.asarray(merged[first][k]) for k in ("dice", "seconds"))
