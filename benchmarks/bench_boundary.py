@@ -31,7 +31,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -43,10 +42,9 @@ from medseg.evaluation.metrics import dice_per_label, score_segmentation
 from medseg.evaluation.perturbation import UNPERTURBED, perturb_condition
 from medseg.io import label_values
 from medseg.reconstruction import warp_labels
-from medseg.segmenter import ShapePriorSegmenter, load_model
 
 sys.path.insert(0, str(Path(__file__).parent))
-from bench_pose_study import _default_data, _split  # noqa: E402  (the same split)
+from bench_pose_study import _default_data, _split, trained_model  # noqa: E402
 
 LABELS = (1, 2)
 
@@ -88,15 +86,7 @@ def main(argv=None) -> int:
     conditions = [c.strip() for c in args.conditions.split(",") if c.strip()]
     cohort = load_cohort(args.data or _default_data())
     train, test = _split(cohort, args.train, args.test, args.seed)
-    if args.model is not None and (args.model / "model.json").is_file():
-        model = load_model(args.model)
-    else:
-        t0 = time.perf_counter()
-        model = ShapePriorSegmenter(labels=LABELS, random_state=args.seed, n_jobs=args.jobs)
-        model.fit(cohort[train])
-        print(f"trained on {len(train)} cases in {time.perf_counter() - t0:.0f} s", flush=True)
-        if args.model is not None:
-            model.save(args.model)
+    model = trained_model(cohort, train, args.model, seed=args.seed, jobs=args.jobs)
     if model.boundary_ is None:
         raise SystemExit(f"{args.model} has no regional stage; train one with this medseg")
     model.n_jobs = model.detector_.n_jobs = args.jobs

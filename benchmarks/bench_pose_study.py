@@ -91,6 +91,20 @@ def _split(cohort, n_train: int, n_test: int, seed: int):
     return sorted(int(i) for i in train), test
 
 
+def trained_model(cohort, train, path: Path | None, *, seed: int, jobs: int, **params):
+    """The model saved at ``path`` when it holds one; else one trained (labels 1+2, seeded)
+    on the cases ``train`` of ``cohort``, and saved at ``path`` when given."""
+    if path is not None and (path / "model.json").is_file():
+        return load_model(path)
+    t0 = time.perf_counter()
+    model = ShapePriorSegmenter(labels=LABELS, random_state=seed, n_jobs=jobs, **params)
+    model.fit(cohort[train])
+    print(f"trained on {len(train)} cases in {time.perf_counter() - t0:.0f} s", flush=True)
+    if path is not None:
+        model.save(path)
+    return model
+
+
 def _scale_free(model: ShapePriorSegmenter, cohort, train) -> ShapePriorSegmenter:
     """The same model with the paper's scale-free prior (and its handedness term refitted
     on the new cliques)."""
@@ -190,18 +204,8 @@ def main(argv=None) -> int:
         raise SystemExit(str(exc)) from None
     cohort = load_cohort(args.data)
     train, test = _split(cohort, args.train, args.test, args.seed)
-    if args.model is not None and (args.model / "model.json").is_file():
-        model = load_model(args.model)
-    else:
-        t0 = time.perf_counter()
-        params = dict(_param(text) for text in args.param)
-        model = ShapePriorSegmenter(
-            labels=LABELS, random_state=args.seed, n_jobs=args.jobs, **params
-        )
-        model.fit(cohort[train])
-        print(f"trained on {len(train)} cases in {time.perf_counter() - t0:.0f} s", flush=True)
-        if args.model is not None:
-            model.save(args.model)
+    params = dict(_param(text) for text in args.param)
+    model = trained_model(cohort, train, args.model, seed=args.seed, jobs=args.jobs, **params)
     models = {"default": model, "carried": model}
     if "no_refine" in variants:
         models["no_refine"] = copy.copy(model).set_params(refine_levels=0)

@@ -37,7 +37,9 @@ from medseg.datasets import load_cohort
 from medseg.evaluation.metrics import dice
 from medseg.io import select_labels
 
-LABELS = (1, 2)
+sys.path.insert(0, str(Path(__file__).parent))
+from bench_pose_study import LABELS, _default_data, trained_model  # noqa: E402
+
 PHANTOM_LABELS = (1,)
 DEFAULT_SETTINGS = (
     "L20_H4:",
@@ -48,16 +50,12 @@ DEFAULT_SETTINGS = (
 )
 
 
-def _default_data() -> Path:
-    return Path(__file__).resolve().parents[2] / "shared" / "data" / "hippocampus"
-
-
 def _held_out(cohort, n_subjects: int, seed: int) -> tuple[list[int], list[int]]:
     """Training and test cases: every case of ``n_subjects`` permuted subjects is tested."""
     subjects = np.asarray(cohort.subjects)
     held = set(np.random.default_rng(seed).permutation(np.unique(subjects))[:n_subjects])
     test = [i for i, s in enumerate(subjects) if s in held]
-    return [i for i in range(len(subjects)) if i not in set(test)], test
+    return [i for i, s in enumerate(subjects) if s not in held], test
 
 
 def _setting(text: str) -> tuple[str, dict]:
@@ -155,8 +153,6 @@ def main(argv=None) -> int:
     if args.out is None:
         parser.error("--out is required unless --summary")
 
-    from medseg.segmenter import ShapePriorSegmenter, load_model
-
     settings = dict(_setting(s) for s in (args.setting or DEFAULT_SETTINGS))
     if args.phantom_folds:
         out = _phantom(settings, args.phantom_folds, args.seed, args.jobs)
@@ -165,15 +161,7 @@ def main(argv=None) -> int:
         return 0
     cohort = load_cohort(args.data)
     train, test = _held_out(cohort, args.test_subjects, args.seed)
-    if args.model is not None and (args.model / "model.json").is_file():
-        model = load_model(args.model)
-    else:
-        t0 = time.perf_counter()
-        model = ShapePriorSegmenter(labels=LABELS, random_state=args.seed, n_jobs=args.jobs)
-        model.fit(cohort[train])
-        print(f"trained on {len(train)} cases in {time.perf_counter() - t0:.0f} s", flush=True)
-        if args.model is not None:
-            model.save(args.model)
+    model = trained_model(cohort, train, args.model, seed=args.seed, jobs=args.jobs)
     out = {name: {"dice": [], "seconds": []} for name in settings}
     _score(model, settings, cohort, test[args.shard :: args.n_shards], LABELS, out)
     args.out.write_text(json.dumps(out))
