@@ -42,10 +42,9 @@ from bench_pose_study import LABELS, _default_data, trained_model  # noqa: E402
 
 PHANTOM_LABELS = (1,)
 DEFAULT_SETTINGS = (
-    "L20_H4:",
-    "L15_H4:n_candidates=15",
-    "L12_H4:n_candidates=12",
-    "L20_H2:n_hypotheses=2",
+    "L15_H4:n_candidates=15,n_hypotheses=4",
+    "L20_H4:n_candidates=20,n_hypotheses=4",
+    "L12_H4:n_candidates=12,n_hypotheses=4",
     "L15_H2:n_candidates=15,n_hypotheses=2",
 )
 

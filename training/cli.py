@@ -24,7 +24,7 @@ from medseg.progress import show_progress
 # --help answers without importing the segmenter (scikit-learn, pyvista, ...: seconds);
 # tests/test_cli.py checks them against the model's signature, so the two cannot drift apart.
 _DEFAULT = {
-    "n_candidates": 20,
+    "n_candidates": 15,
     "cliques": "knn",
     "orientation_weight": 1.0,
     "refine_levels": 2,
