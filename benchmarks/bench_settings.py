@@ -4,7 +4,7 @@ Usage::
 
     python benchmarks/bench_settings.py --model MODEL --out settings.json [--data DIR]
         [--test-subjects 40] [--seed 0] [--jobs 2] [--shard 0 --n-shards 1]
-        [--setting NAME:param=value,param=value ...]
+        [--setting NAME:param=value,param=value ...] [--train-param KEY=VALUE ...]
     python benchmarks/bench_settings.py --phantom-folds 5 --out phantom.json
     python benchmarks/bench_settings.py --summary settings_0.json settings_1.json
 
@@ -16,6 +16,10 @@ the model's segment-time parameters changed (``n_candidates``, ``n_hypotheses``,
 ``refine_levels``, ...): Dice of the union of the labels and seconds, paired with the first
 setting. ``--shard`` / ``--n-shards`` split the cases over processes (the seconds of
 processes run side by side are comparable with each other, not with a lone run).
+``--train-param`` changes the trained model itself (``n_estimators=10``: give it its own
+``--model`` folder and its settings their own names); ``--summary`` pairs every setting of
+its files with the first on the cases both have, so shards, and runs of two models on the
+same cases, make one table.
 ``--phantom-folds K`` runs the same comparison on the README's phantom protocol instead
 (``make_phantom_cohort(20, random_state=seed)``, label 1, K folds by subject with the
 evaluation's fold seeds, a model trained per fold), and also records the mean landmark error
@@ -68,29 +72,36 @@ def _setting(text: str) -> tuple[str, dict]:
 
 
 def _summary(paths: list[Path]) -> None:
-    runs = [json.loads(path.read_text()) for path in paths]
-    shared = [name for name in runs[0] if all(name in run for run in runs)]  # paired only
-    merged: dict = {}
-    for run in runs:
-        for name in shared:
-            got = merged.setdefault(name, {})
-            for key, values in run[name].items():
-                got[key] = got.get(key, []) + values
-    first = next(iter(merged))
-    base_d, base_t = (np.asarray(merged[first][k]) for k in ("dice", "seconds"))
-    print(f"{len(base_d)} cases; paired with {first}")
-    print("| setting | Dice mean | median | min | paired diff ± s.e. | better / worse "
+    """One table of every setting in ``paths``, each paired with the first on the cases both
+    have: shards of one run (other cases) and runs of another model (other settings, the
+    same cases) combine alike. Files without case ids pair within a file only."""
+    rows: dict = {}  # setting -> case -> {"dice": ..., "seconds": ..., "error": ...}
+    for k, path in enumerate(paths):
+        for name, run in json.loads(path.read_text()).items():
+            cases = run.get("case") or [f"{k}:{j}" for j in range(len(run["dice"]))]
+            got = rows.setdefault(name, {})
+            for j, case in enumerate(cases):
+                got[case] = {key: run[key][j] for key in run if key != "case" and run[key]}
+    first = next(iter(rows))
+    print(f"paired with {first}")
+    print("| setting | cases | Dice mean | median | min | paired diff ± s.e. | better / worse "
           "| s median | time ratio | landmark error, mm |")  # fmt: skip
-    print("|---|---|---|---|---|---|---|---|---|")
-    for name, rows in merged.items():
-        d, t = np.asarray(rows["dice"]), np.asarray(rows["seconds"])
-        diff = d - base_d
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for name, by_case in rows.items():
+        both = [c for c in by_case if c in rows[first]]
+        if not both:
+            print(f"| {name} | 0 | (no case in common with {first}) |")
+            continue
+        d, t = (np.array([by_case[c][key] for c in both]) for key in ("dice", "seconds"))
+        d0, t0 = (np.array([rows[first][c][key] for c in both]) for key in ("dice", "seconds"))
+        diff = d - d0
         se = diff.std(ddof=1) / np.sqrt(len(d)) if len(d) > 1 else float("nan")
+        errors = [by_case[c]["error"] for c in both if "error" in by_case[c]]
         print(
-            f"| {name} | {d.mean():.4f} | {np.median(d):.4f} | {d.min():.3f} | "
+            f"| {name} | {len(d)} | {d.mean():.4f} | {np.median(d):.4f} | {d.min():.3f} | "
             f"{diff.mean():+.4f} ± {se:.4f} | {(diff > 0).sum()} / {(diff < 0).sum()} | "
-            f"{np.median(t):.2f} | {np.median(t / base_t):.2f} | "
-            + (f"{np.mean(rows['error']):.2f} |" if "error" in rows else "— |")
+            f"{np.median(t):.2f} | {np.median(t / t0):.2f} | "
+            + (f"{np.mean(errors):.2f} |" if errors else "— |")
         )
 
 
@@ -110,6 +121,7 @@ def _score(model, settings, cohort, cases, labels, out, *, error: bool = False) 
             t0 = time.perf_counter()
             seg = m.segment(image)
             out[name]["seconds"].append(time.perf_counter() - t0)
+            out[name]["case"].append(case.case_id)
             out[name]["dice"].append(dice(seg.label, reference))
             if truth is not None:
                 error = np.linalg.norm(seg.landmarks - truth, axis=1).mean()
@@ -117,16 +129,16 @@ def _score(model, settings, cohort, cases, labels, out, *, error: bool = False) 
         print(case.case_id, {k: round(v["dice"][-1], 3) for k, v in out.items()}, flush=True)
 
 
-def _phantom(settings, n_folds: int, seed: int, jobs: int) -> dict:
+def _phantom(settings, n_folds: int, seed: int, jobs: int, fit_params: dict) -> dict:
     """The settings on the phantom, ``n_folds`` folds by subject, a model per fold."""
     from medseg.datasets import make_phantom_cohort
     from medseg.evaluation.folds import fold_seed, make_folds
     from medseg.segmenter import ShapePriorSegmenter
 
     cohort = make_phantom_cohort(20, random_state=seed)
-    out = {name: {"dice": [], "error": [], "seconds": []} for name in settings}
+    out = {name: {"case": [], "dice": [], "error": [], "seconds": []} for name in settings}
     for fold, (train, test) in enumerate(make_folds(cohort, n_folds)):
-        model = ShapePriorSegmenter(random_state=fold_seed(seed, fold), n_jobs=jobs)
+        model = ShapePriorSegmenter(random_state=fold_seed(seed, fold), n_jobs=jobs, **fit_params)
         model.fit(cohort[train])
         _score(model, settings, cohort, [int(i) for i in test], PHANTOM_LABELS, out, error=True)
     return out
@@ -143,6 +155,12 @@ def main(argv=None) -> int:
     parser.add_argument("--shard", type=int, default=0)
     parser.add_argument("--n-shards", type=int, default=1)
     parser.add_argument("--setting", action="append", default=None, help="NAME:param=value,...")
+    parser.add_argument(
+        "--train-param",
+        action="append",
+        default=[],
+        help="KEY=VALUE (JSON) of the trained model(s), e.g. n_estimators=10.",
+    )
     parser.add_argument("--phantom-folds", type=int, default=0, help="Phantom K-fold instead.")
     parser.add_argument("--summary", type=Path, nargs="+", default=None)
     args = parser.parse_args(argv)
@@ -153,15 +171,16 @@ def main(argv=None) -> int:
         parser.error("--out is required unless --summary")
 
     settings = dict(_setting(s) for s in (args.setting or DEFAULT_SETTINGS))
+    _, fit_params = _setting(":" + ",".join(args.train_param))
     if args.phantom_folds:
-        out = _phantom(settings, args.phantom_folds, args.seed, args.jobs)
+        out = _phantom(settings, args.phantom_folds, args.seed, args.jobs, fit_params)
         args.out.write_text(json.dumps(out))
         _summary([args.out])
         return 0
     cohort = load_cohort(args.data)
     train, test = _held_out(cohort, args.test_subjects, args.seed)
-    model = trained_model(cohort, train, args.model, seed=args.seed, jobs=args.jobs)
-    out = {name: {"dice": [], "seconds": []} for name in settings}
+    model = trained_model(cohort, train, args.model, seed=args.seed, jobs=args.jobs, **fit_params)
+    out = {name: {"case": [], "dice": [], "seconds": []} for name in settings}
     _score(model, settings, cohort, test[args.shard :: args.n_shards], LABELS, out)
     args.out.write_text(json.dumps(out))
     _summary([args.out])
