@@ -204,15 +204,20 @@ def test_rows_scores_and_perturbation(tmp_path):
             # in a field of view padded with zeros (the threshold is above 0).
             assert r["dice"] == 1.0 and r["hd95"] == 0.0 and r["assd"] == 0.0
             assert r["perturbation_deg"] == 0.0 and r["scale"] == 1.0
-        elif condition == "rot30":
-            assert r["perturbation_deg"] == pytest.approx(30.0) and r["scale"] == 1.0
-            assert 0.9 < r["dice"] < 1.0
-        elif condition == "scale1.25":
-            assert r["perturbation_deg"] == 0.0 and r["scale"] == 1.25
-            assert 0.9 < r["dice"] < 1.0
         else:
-            assert 0.0 <= r["perturbation_deg"] <= 45.0 and 0.8 <= r["scale"] <= 1.25
-            assert r["dice"] > 0.85
+            if condition == "rot30":
+                assert r["perturbation_deg"] == pytest.approx(30.0) and r["scale"] == 1.0
+            elif condition == "scale1.25":
+                assert r["perturbation_deg"] == 0.0 and r["scale"] == 1.25
+            else:
+                assert 0.0 <= r["perturbation_deg"] <= 45.0 and 0.8 <= r["scale"] <= 1.25
+            # The reference follows the image: the label resampled label-linearly is its
+            # indicator interpolated linearly above one half, which is what thresholding the
+            # linearly resampled two-level image keeps (by nearest neighbour the rows were
+            # 0.93-0.97 under rot30 and scale1.25; label-linearly 0.988-1.0).
+            assert r["dice"] > 0.98
+    for condition in ("rot30", "scale1.25"):
+        assert np.mean([r["dice"] for r in rows if r["perturbation"] == condition]) > 0.99
         assert np.isnan(r["gap"]) and r["seconds"] >= 0
     # One perturbed copy per (case, condition), shared by the methods; seeded per case.
     for case in cohort:

@@ -211,9 +211,15 @@ def test_run_evaluation_end_to_end(tmp_path):
     assert set(data["perturbation"]["thresh"]) == conditions
     assert all(v["n"] == len(cohort) for v in data["perturbation"]["thresh"].values())
     assert data["perturbation"]["thresh"]["rot30"]["angle_deg"] == pytest.approx(30.0)
-    assert 0.0 < data["perturbation"]["thresh"]["rot30"]["dice_loss"] < 0.1
     rows = list(csv.DictReader((out / "cases.csv").open()))
     assert len(rows) == 2 * len(cohort) * 4
+    # the loss is the paired mean of the rows: acquired minus perturbed Dice, case by case
+    for name in ("rot30", "scale0.9"):
+        dice = {(r["case"], r["perturbation"]): float(r["dice"]) for r in rows
+                if r["method"] == "shifted"}  # fmt: skip
+        loss = np.mean([dice[(c.case_id, "acquired")] - dice[(c.case_id, name)] for c in cohort])
+        assert data["perturbation"]["shifted"][name]["dice_loss"] == pytest.approx(loss)
+        assert abs(loss) < 0.05
     text = (out / "summary.md").read_text(encoding="utf-8")
     assert "| method | 0 deg | 30 deg |" in text and "| method | 0.9 | 1 |" in text
     assert "| pad_noise |" in text

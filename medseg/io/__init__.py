@@ -53,6 +53,7 @@ from medseg.io._landmarks import LANDMARK_SUFFIXES, read_landmarks, write_landma
 from medseg.io._nibabel import as_input_type, to_nibabel
 from medseg.io._resample import (
     FILLS,
+    LABEL_INTERPOLATIONS,
     border_values,
     padded_grid,
     resample_affine,
@@ -76,6 +77,7 @@ __all__ = [
     "resample_affine",
     "padded_grid",
     "FILLS",
+    "LABEL_INTERPOLATIONS",
     "check_image",
     "check_same_geometry",
     "to_nibabel",
