@@ -25,7 +25,7 @@ from medseg.errors import MedsegError
 from medseg.evaluation.fold import FoldTask, run_fold
 from medseg.evaluation.folds import check_cohort, fold_seed
 from medseg.evaluation.methods import MethodSpec
-from medseg.evaluation.perturbation import check_conditions
+from medseg.evaluation.perturbation import LABEL_INTERPOLATION, check_conditions
 from medseg.evaluation.results import ResultsFile, result_key
 from medseg.io import atomic_write
 
@@ -151,6 +151,8 @@ def run_folds(
             "labels": list(labels),
             "seed": int(seed),
             "n_landmarks": n_landmarks,
+            # rows scored against references resampled otherwise are not comparable
+            "reference_labels": LABEL_INTERPOLATION,
             "methods": _method_config(specs),
         },
     )

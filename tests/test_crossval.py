@@ -8,6 +8,7 @@ mean training landmarks with a seeded jitter) on a tiny generated cohort of ball
 from __future__ import annotations
 
 import csv
+import json
 import math
 import sys
 from pathlib import Path
@@ -338,6 +339,13 @@ def test_resume_recomputes_only_missing_rows(tmp_path):
     other_params = (MethodSpec(ThresholdMethod, {"jitter": 0.1}, {"thresh": {}}),)
     with pytest.raises(MedsegError, match="method 'thresh'"):
         run_folds(cohort, other_params, part, folds="loo", seed=3)
+    # a folder scored against references resampled otherwise (before 2026-12-04: nearest
+    # neighbour, a run.json without the key) is not resumed
+    config = json.loads((part / "run.json").read_text())
+    assert config.pop("reference_labels") == "linear"
+    (part / "run.json").write_text(json.dumps(config))
+    with pytest.raises(MedsegError, match="reference_labels"):
+        run_folds(cohort, _specs(str(log)), part, **study)
 
 
 def _register_by_value():
