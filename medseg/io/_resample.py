@@ -2,9 +2,9 @@
 
 The one place images change grid: :func:`resample_like` (onto a reference's grid; labels by
 nearest neighbour or label-linear interpolation, so no label value is invented),
-:func:`resample_affine` (moved by an
-affine map of physical space, onto a grid of choice, with what lies beyond the original
-field of view filled by a constant, zeros, or noise like the image's border), and
+:func:`resample_affine` (moved by an affine map of physical space, onto a grid of choice,
+with what lies beyond the original field of view filled by a constant, zeros, or noise like
+the image's border), and
 :func:`padded_grid` (a grid extended by a margin). Pose perturbations, the shape's frame and
 training-time pose augmentation are all built on these.
 """
