@@ -42,7 +42,7 @@ from medseg.evaluation.metrics import dice
 from medseg.io import select_labels
 
 sys.path.insert(0, str(Path(__file__).parent))
-from bench_pose_study import LABELS, _default_data, trained_model  # noqa: E402
+from bench_pose_study import LABELS, _default_data, _param, trained_model  # noqa: E402
 
 PHANTOM_LABELS = (1,)
 DEFAULT_SETTINGS = (
@@ -171,7 +171,7 @@ def main(argv=None) -> int:
         parser.error("--out is required unless --summary")
 
     settings = dict(_setting(s) for s in (args.setting or DEFAULT_SETTINGS))
-    _, fit_params = _setting(":" + ",".join(args.train_param))
+    fit_params = dict(_param(text) for text in args.train_param)  # as bench_pose_study --param
     if args.phantom_folds:
         out = _phantom(settings, args.phantom_folds, args.seed, args.jobs, fit_params)
         args.out.write_text(json.dumps(out))

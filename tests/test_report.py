@@ -214,9 +214,9 @@ def test_run_evaluation_end_to_end(tmp_path):
     rows = list(csv.DictReader((out / "cases.csv").open()))
     assert len(rows) == 2 * len(cohort) * 4
     # the loss is the paired mean of the rows: acquired minus perturbed Dice, case by case
+    dice = {(r["case"], r["perturbation"]): float(r["dice"]) for r in rows
+            if r["method"] == "shifted"}  # fmt: skip
     for name in ("rot30", "scale0.9"):
-        dice = {(r["case"], r["perturbation"]): float(r["dice"]) for r in rows
-                if r["method"] == "shifted"}  # fmt: skip
         loss = np.mean([dice[(c.case_id, "acquired")] - dice[(c.case_id, name)] for c in cohort])
         assert data["perturbation"]["shifted"][name]["dice_loss"] == pytest.approx(loss)
         assert abs(loss) < 0.05
