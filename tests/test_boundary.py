@@ -283,3 +283,29 @@ def test_patch_weighted_votes_follow_the_atlas_that_looks_like_the_case(cohort):
     )
     again = FrameAtlases.from_arrays(weighted.arrays())
     np.testing.assert_array_equal(again.fuse(upright, pose(landmarks[3])), votes)
+
+
+def test_a_boosting_stage_refines_round_trips_and_says_its_format(stage, cohort, tmp_path):
+    from medseg.io import load_arrays
+
+    _, frame, template = stage
+    images, labels, landmarks = zip(*cohort[:10], strict=True)
+    boosted = BoundaryStage(
+        classifier="boosting", n_iterations=30, rows_per_case=3000, smoothness=(0.5, 2.0),
+        shape_weight=(0.0, 0.3), validation_fraction=0.5, random_state=0,
+    ).fit(frame, *template, list(images), list(labels), np.stack(landmarks))  # fmt: skip
+    assert boosted.classifier_.method == "boosting"
+    image, truth, points = cohort[10]
+    shift = np.array([2.0, 0.0, 0.0])
+    refined = boosted.refine(frame, *template, image, points + shift)
+    assert np.linalg.norm(_centroid(refined.label) - _centroid(truth)) < 1.0
+    folder = boosted.save(tmp_path / "boosted")
+    header, _ = load_arrays(folder / "stage.npz", what="boundary stage")
+    assert header["format_version"] == BoundaryStage.FORMAT_VERSION == 3
+    again = BoundaryStage.load(folder)
+    assert (again.classifier, again.n_iterations) == ("boosting", 30)
+    a = again.refine(frame, *template, image, points + shift)
+    np.testing.assert_array_equal(
+        sitk.GetArrayFromImage(a.label), sitk.GetArrayFromImage(refined.label)
+    )
+    assert a.score == refined.score

@@ -1,6 +1,9 @@
 """Scikit-learn forests as plain arrays: how a detector of format version 2 stores its forests.
 
-One NPZ file (:func:`medseg.io.save_arrays`) holds every forest of a detector. Its JSON header
+One NPZ file (:func:`medseg.io.save_arrays`) holds every forest of a detector (or the voxel
+classifier's one ensemble: a forest, or a boosting's trees,
+:class:`medseg.detection._boosting.BoostedTrees`, whose header also carries its baseline and
+whose leaves hold one raw score each). Its JSON header
 lists, per forest, the estimator class, its constructor parameters and fitted scalars
 (``classes_``, ``n_features_in_``, ...), and the parameters shared by its trees; the arrays hold
 all trees of all forests concatenated, in compact dtypes:
@@ -49,7 +52,8 @@ from sklearn.ensemble import ExtraTreesClassifier, RandomForestClassifier
 from sklearn.tree import DecisionTreeClassifier, ExtraTreeClassifier
 from sklearn.tree._tree import NODE_DTYPE, TREE_LEAF, TREE_UNDEFINED, Tree
 
-from medseg.errors import ModelFileError
+from medseg.detection._boosting import BoostedTrees
+from medseg.errors import ModelFileError, ParameterError
 from medseg.io import check_format, load_arrays, save_arrays
 
 __all__ = [
@@ -175,8 +179,42 @@ def _classes(classes) -> dict:
     return {"values": classes.tolist(), "dtype": classes.dtype.str}
 
 
+def _trees(forest) -> list:
+    """The ``Tree`` objects of a forest or of :class:`BoostedTrees`, in storage order."""
+    if isinstance(forest, BoostedTrees):
+        return list(forest.trees_)
+    return [estimator.tree_ for estimator in forest.estimators_]
+
+
+def _seeds(forest) -> list:
+    if isinstance(forest, BoostedTrees):
+        return [0] * len(forest.trees_)
+    return [estimator.random_state for estimator in forest.estimators_]
+
+
+def _boosting_spec(boosted: BoostedTrees) -> dict:
+    n_features = int(boosted.n_features_in_)
+    if not boosted.trees_ or any(
+        t.n_features != n_features or list(t.n_classes) != [1] or t.n_outputs != 1
+        for t in boosted.trees_
+    ):
+        raise UnsupportedForest("boosting trees of another shape than one score per leaf")
+    baseline = [float(v) for v in boosted.baseline_]
+    if not np.isfinite(baseline).all():
+        raise UnsupportedForest("a baseline that is not finite")
+    return {
+        "class": "BoostedTrees",
+        "fitted": {"n_features_in_": n_features, "classes_": _classes(boosted.classes_)},
+        "baseline": baseline,
+        "tree_fitted": {"n_features_in_": n_features, "n_classes_": 1},
+        "n_trees": len(boosted.trees_),
+    }
+
+
 def _forest_spec(forest) -> dict:
     """The JSON description of ``forest`` and its trees (everything but the node arrays)."""
+    if isinstance(forest, BoostedTrees):
+        return _boosting_spec(forest)
     cls = type(forest)
     if _FORESTS.get(cls.__name__) is not cls:
         raise UnsupportedForest(f"{cls.__name__} is not a plain random / extra-trees forest")
@@ -241,8 +279,8 @@ def _forest_spec(forest) -> dict:
     }
 
 
-def _tree_arrays(tree) -> dict:
-    state = tree.tree_.__getstate__()
+def _tree_arrays(tree: Tree) -> dict:
+    state = tree.__getstate__()
     if set(state) != set(TREE_STATE_KEYS):
         raise UnsupportedForest(f"tree state with keys {sorted(state)}")
     nodes, values = state["nodes"], state["values"]
@@ -272,7 +310,7 @@ def _tree_arrays(tree) -> dict:
 
 def _node_arrays(forests) -> dict:
     """The node arrays of every tree of ``forests``, concatenated (all but ``random_state``)."""
-    trees = [_tree_arrays(t) for f in forests for t in f.estimators_]
+    trees = [_tree_arrays(t) for f in forests for t in _trees(f)]
     n_features = max((int(f.n_features_in_) for f in forests), default=0)
     feature_dtype = np.int16 if n_features <= np.iinfo(np.int16).max else np.int32
     dtypes = {
@@ -308,9 +346,7 @@ def save_forests(path, forests) -> None:
         raise UnsupportedForest(_layout_problem())
     specs = [_forest_spec(f) for f in forests]
     arrays = _node_arrays(forests)
-    arrays["random_state"] = np.array(
-        [t.random_state for f in forests for t in f.estimators_], dtype=np.int64
-    )
+    arrays["random_state"] = np.array([s for f in forests for s in _seeds(f)], dtype=np.int64)
     header = {
         "format": FORMAT,
         "format_version": FORMAT_VERSION,
@@ -497,78 +533,105 @@ def _rebuild(specs: list, arrays: dict) -> list:
         [int(s["tree_fitted"]["n_features_in_"]) for s in specs],
         [int(s["tree_fitted"]["n_classes_"]) for s in specs],
     )
-    # one node buffer in the installed scikit-learn's layout, reused from forest to forest
-    # (Tree.__setstate__ copies it); the statistics not stored are NaN or 0
-    buffer = np.zeros(0, dtype=NODE_DTYPE)
     forests = []
     for spec, part in zip(specs, parts, strict=True):
-        cls, tree_cls = _FORESTS.get(spec["class"]), _TREES.get(spec["tree_class"])
-        if cls is None or tree_cls is None:
-            raise ModelFileError(f"unknown estimator class {spec['class']!r}")
-        fitted, tree_fitted = spec["fitted"], spec["tree_fitted"]
-        n_classes, n_features = int(tree_fitted["n_classes_"]), int(tree_fitted["n_features_in_"])
-        classes = _classes_array(fitted["classes_"])
-        tree_classes = _classes_array(tree_fitted["classes_"])
-        if (
-            len(classes) != n_classes
-            or int(fitted["n_classes_"]) != n_classes
-            or not np.array_equal(classes, tree_classes)
-            or int(fitted["n_features_in_"]) != n_features
-        ):
-            raise ModelFileError("the classes of a forest and of its trees disagree")
-        split = part["split"]
-        if len(buffer) < len(split):
-            buffer = np.zeros(len(split), dtype=NODE_DTYPE)
-        nodes = buffer[: len(split)]
-        nodes["left_child"] = part["left"]
-        nodes["right_child"] = part["right"]
-        n_nodes, inner = len(split), np.flatnonzero(split)
-        for field, stored, fill in (
-            ("feature", "feature", TREE_UNDEFINED),
-            ("threshold", "threshold", float(TREE_UNDEFINED)),
-            ("missing_go_to_left", "missing_left", 0),
-        ):
-            full = np.full(n_nodes, fill, dtype=nodes.dtype[field])
-            full[inner] = part[stored]  # a contiguous scatter, then one strided copy
-            nodes[field] = full
-        nodes["impurity"] = np.nan
-        nodes["n_node_samples"] = 0
-        nodes["weighted_n_node_samples"] = np.nan
-        values = np.full((n_nodes, n_classes), np.nan)
-        values[np.flatnonzero(~split)] = part["values"]
-        values = values.reshape(n_nodes, 1, n_classes)
-        n_classes_array = np.array([n_classes], dtype=np.intp)
-        estimators = []
-        for t, (start, stop) in enumerate(
-            zip(part["offsets"][:-1], part["offsets"][1:], strict=True)
-        ):
-            start, stop = int(start), int(stop)
-            state = Tree(n_features, n_classes_array, 1)
-            state.__setstate__(
-                {
-                    "max_depth": int(part["max_depth"][t]),
-                    "node_count": stop - start,
-                    "nodes": nodes[start:stop],
-                    "values": values[start:stop],
-                }
-            )
-            estimator = tree_cls(**spec["tree_params"], random_state=int(part["random_state"][t]))
-            estimator.n_features_in_ = n_features
-            estimator.n_outputs_ = 1
-            estimator.classes_ = tree_classes.copy()
-            estimator.n_classes_ = np.intp(n_classes)
-            estimator.max_features_ = int(tree_fitted["max_features_"])
-            estimator.tree_ = state
-            estimators.append(estimator)
-        forest = cls(**spec["params"])
-        forest.n_features_in_ = n_features
-        forest.n_outputs_ = 1
-        forest.classes_ = classes
-        forest.n_classes_ = n_classes
-        for name in ("_n_samples", "_n_samples_bootstrap"):
-            if name in fitted:
-                setattr(forest, name, None if fitted[name] is None else int(fitted[name]))
-        forest.estimator_ = forest.estimator
-        forest.estimators_ = estimators
-        forests.append(forest)
+        if spec["class"] == "BoostedTrees":
+            forests.append(_rebuild_boosting(spec, part))
+        else:
+            forests.append(_rebuild_forest(spec, part))
     return forests
+
+
+def _rebuild_boosting(spec: dict, part: dict) -> BoostedTrees:
+    n_features = int(spec["fitted"]["n_features_in_"])
+    if (
+        int(spec["tree_fitted"]["n_classes_"]) != 1
+        or int(spec["tree_fitted"]["n_features_in_"]) != n_features
+    ):
+        raise ModelFileError("boosting trees of another shape than one score per leaf")
+    baseline = np.asarray(spec["baseline"], dtype=np.float64)
+    if baseline.ndim != 1 or not np.isfinite(baseline).all():
+        raise ModelFileError("the boosting's baseline is not a finite vector")
+    trees = _build_trees(part, n_features, 1)
+    try:
+        return BoostedTrees(trees, baseline, _classes_array(spec["fitted"]["classes_"]), n_features)
+    except ParameterError as exc:
+        raise ModelFileError(str(exc)) from None
+
+
+def _rebuild_forest(spec: dict, part: dict):
+    cls, tree_cls = _FORESTS.get(spec["class"]), _TREES.get(spec["tree_class"])
+    if cls is None or tree_cls is None:
+        raise ModelFileError(f"unknown estimator class {spec['class']!r}")
+    fitted, tree_fitted = spec["fitted"], spec["tree_fitted"]
+    n_classes, n_features = int(tree_fitted["n_classes_"]), int(tree_fitted["n_features_in_"])
+    classes = _classes_array(fitted["classes_"])
+    tree_classes = _classes_array(tree_fitted["classes_"])
+    if (
+        len(classes) != n_classes
+        or int(fitted["n_classes_"]) != n_classes
+        # a forest's trees learn the classes' indices (scikit-learn encodes ``y``)
+        or not np.array_equal(tree_classes, np.arange(n_classes))
+        or int(fitted["n_features_in_"]) != n_features
+    ):
+        raise ModelFileError("the classes of a forest and of its trees disagree")
+    estimators = []
+    for t, state in enumerate(_build_trees(part, n_features, n_classes)):
+        estimator = tree_cls(**spec["tree_params"], random_state=int(part["random_state"][t]))
+        estimator.n_features_in_ = n_features
+        estimator.n_outputs_ = 1
+        estimator.classes_ = tree_classes.copy()
+        estimator.n_classes_ = np.intp(n_classes)
+        estimator.max_features_ = int(tree_fitted["max_features_"])
+        estimator.tree_ = state
+        estimators.append(estimator)
+    forest = cls(**spec["params"])
+    forest.n_features_in_ = n_features
+    forest.n_outputs_ = 1
+    forest.classes_ = classes
+    forest.n_classes_ = n_classes
+    for name in ("_n_samples", "_n_samples_bootstrap"):
+        if name in fitted:
+            setattr(forest, name, None if fitted[name] is None else int(fitted[name]))
+    forest.estimator_ = forest.estimator
+    forest.estimators_ = estimators
+    return forest
+
+
+def _build_trees(part: dict, n_features: int, n_classes: int) -> list:
+    """The ``Tree`` objects of one checked part (:func:`_forest_parts`), in the installed
+    scikit-learn's layout; the statistics not stored are NaN or 0."""
+    split = part["split"]
+    nodes = np.zeros(len(split), dtype=NODE_DTYPE)  # Tree.__setstate__ copies its slices
+    nodes["left_child"] = part["left"]
+    nodes["right_child"] = part["right"]
+    n_nodes, inner = len(split), np.flatnonzero(split)
+    for field, stored, fill in (
+        ("feature", "feature", TREE_UNDEFINED),
+        ("threshold", "threshold", float(TREE_UNDEFINED)),
+        ("missing_go_to_left", "missing_left", 0),
+    ):
+        full = np.full(n_nodes, fill, dtype=nodes.dtype[field])
+        full[inner] = part[stored]  # a contiguous scatter, then one strided copy
+        nodes[field] = full
+    nodes["impurity"] = np.nan
+    nodes["n_node_samples"] = 0
+    nodes["weighted_n_node_samples"] = np.nan
+    values = np.full((n_nodes, n_classes), np.nan)
+    values[np.flatnonzero(~split)] = part["values"]
+    values = values.reshape(n_nodes, 1, n_classes)
+    n_classes_array = np.array([n_classes], dtype=np.intp)
+    trees = []
+    for t, (start, stop) in enumerate(zip(part["offsets"][:-1], part["offsets"][1:], strict=True)):
+        start, stop = int(start), int(stop)
+        tree = Tree(n_features, n_classes_array, 1)
+        tree.__setstate__(
+            {
+                "max_depth": int(part["max_depth"][t]),
+                "node_count": stop - start,
+                "nodes": nodes[start:stop],
+                "values": values[start:stop],
+            }
+        )
+        trees.append(tree)
+    return trees

@@ -9,9 +9,10 @@ normalised by the structure's own contrast, the median inside the warped templat
 the median of a ring outside it, so that neither the field of view nor the scanner's
 scaling enters.
 
-The forest is a plain random forest (scikit-learn), stored as node arrays
-(:mod:`medseg.detection._forest_arrays`) like the landmark detectors, so a model loads
-without pickle.
+The classifier is a random forest or histogram gradient boosting (scikit-learn), kept as
+plain trees (:class:`medseg.detection._boosting.BoostedTrees` for the boosting) and stored
+as node arrays (:mod:`medseg.detection._forest_arrays`) like the landmark detectors, so a
+model loads without pickle.
 """
 
 from __future__ import annotations
@@ -23,8 +24,10 @@ import SimpleITK as sitk
 from numpy.typing import ArrayLike
 from scipy import ndimage
 from sklearn.base import BaseEstimator, ClassifierMixin
-from sklearn.ensemble import RandomForestClassifier
+from sklearn.ensemble import HistGradientBoostingClassifier, RandomForestClassifier
+from threadpoolctl import threadpool_limits
 
+from medseg.detection._boosting import BoostedTrees
 from medseg.detection._features import FeatureSettings, compute_features, image_array
 from medseg.detection._forest_arrays import load_forests, save_forests
 from medseg.errors import ModelFileError, NotFittedError, ParameterError
@@ -166,38 +169,56 @@ def context_features(probabilities: ArrayLike, where: ArrayLike, spacing_zyx) ->
 
 
 class VoxelClassifier(ClassifierMixin, BaseEstimator):
-    """Random forest over :func:`voxel_features`: class probabilities of each voxel.
+    """Random forest or gradient boosting over :func:`voxel_features`: class probabilities
+    of each voxel.
 
     Parameters
     ----------
+    method : {"forest", "boosting"}, default "forest"
+        A random forest, or histogram gradient boosting (fitted by scikit-learn, kept as
+        :class:`~medseg.detection._boosting.BoostedTrees`).
     n_estimators : int, default 30
+        Trees of the forest, or boosting iterations.
     min_samples_leaf : int, default 5
+        Of the forest's trees (the boosting keeps scikit-learn's 20).
     max_features : str, int or float, default "sqrt"
+        Of the forest's trees.
+    learning_rate : float, default 0.1
+        Of the boosting.
+    max_leaf_nodes : int, default 31
+        Of each boosting tree.
     random_state : int, RandomState or None
     n_jobs : int, default 1
-        Threads of the forest; the model does not depend on it.
+        Threads of the fitting; the model does not depend on it.
 
     Attributes
     ----------
-    forest_ : RandomForestClassifier
+    ensemble_ : RandomForestClassifier or BoostedTrees
     classes_ : (K,) int array
         The label values, 0 (background) first.
     """
 
     FORMAT = "medseg.detection.VoxelClassifier"
+    METHODS = ("forest", "boosting")
 
     def __init__(
         self,
+        method: str = "forest",
         n_estimators: int = 30,
         *,
         min_samples_leaf: int = 5,
         max_features="sqrt",
+        learning_rate: float = 0.1,
+        max_leaf_nodes: int = 31,
         random_state=None,
         n_jobs: int = 1,
     ):
+        self.method = method
         self.n_estimators = n_estimators
         self.min_samples_leaf = min_samples_leaf
         self.max_features = max_features
+        self.learning_rate = learning_rate
+        self.max_leaf_nodes = max_leaf_nodes
         self.random_state = random_state
         self.n_jobs = n_jobs
 
@@ -205,38 +226,54 @@ class VoxelClassifier(ClassifierMixin, BaseEstimator):
         """Fit on feature rows ``X`` (:func:`voxel_features`) and label values ``y``."""
         X = np.asarray(X, dtype=np.float32)
         y = np.asarray(y).astype(np.int64)
+        if self.method not in self.METHODS:
+            raise ParameterError(f"`method` must be one of {self.METHODS}; got {self.method!r}")
         if X.ndim != 2 or len(X) != len(y) or len(X) == 0:
             raise ParameterError(f"`X` must be (n, F) with one label each; got {X.shape}")
         if len(np.unique(y)) < 2:
             raise ParameterError("the voxel classifier needs at least two labels among `y`")
-        self.forest_ = RandomForestClassifier(
-            n_estimators=self.n_estimators,
-            min_samples_leaf=self.min_samples_leaf,
-            max_features=self.max_features,
-            random_state=self.random_state,
-            n_jobs=self.n_jobs,
-        ).fit(X, y)
-        self.classes_ = self.forest_.classes_
+        if self.method == "forest":
+            self.ensemble_ = RandomForestClassifier(
+                n_estimators=self.n_estimators,
+                min_samples_leaf=self.min_samples_leaf,
+                max_features=self.max_features,
+                random_state=self.random_state,
+                n_jobs=self.n_jobs,
+            ).fit(X, y)
+        else:
+            boosting = HistGradientBoostingClassifier(
+                max_iter=self.n_estimators,
+                learning_rate=self.learning_rate,
+                max_leaf_nodes=self.max_leaf_nodes,
+                early_stopping=False,
+                random_state=self.random_state,
+            )
+            with threadpool_limits(limits=self.n_jobs, user_api="openmp"):
+                boosting.fit(X, y)
+            self.ensemble_ = BoostedTrees.from_estimator(boosting)
+        self.classes_ = self.ensemble_.classes_
         return self
 
     def predict_proba(self, X: ArrayLike) -> np.ndarray:
         """(n, K) class probabilities, columns in the order of ``classes_``."""
-        if not hasattr(self, "forest_"):
+        if not hasattr(self, "ensemble_"):
             raise NotFittedError("this VoxelClassifier is not fitted yet")
-        return self.forest_.predict_proba(np.asarray(X, dtype=np.float32))
+        return self.ensemble_.predict_proba(np.asarray(X, dtype=np.float32))
 
     def save(self, path) -> Path:
-        """Write the forest to one ``.npz`` file (node arrays, no pickle)."""
-        save_forests(path, [self.forest_])
+        """Write the trees to one ``.npz`` file (node arrays, no pickle)."""
+        save_forests(path, [self.ensemble_])
         return Path(path)
 
     @classmethod
     def load(cls, path, **params) -> VoxelClassifier:
         """Read a classifier written by :meth:`save`."""
-        forests = load_forests(path)
-        if len(forests) != 1:
-            raise ModelFileError(f"{path} holds {len(forests)} forests, not one")
-        model = cls(**params)
-        model.forest_ = forests[0]
-        model.classes_ = model.forest_.classes_
+        ensembles = load_forests(path)
+        if len(ensembles) != 1:
+            raise ModelFileError(f"{path} holds {len(ensembles)} ensembles, not one")
+        ensemble = ensembles[0]
+        method = "boosting" if isinstance(ensemble, BoostedTrees) else "forest"
+        model = cls(**({"method": method} | params))
+        model.ensemble_ = ensemble
+        model.classes_ = ensemble.classes_
         return model

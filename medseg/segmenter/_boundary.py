@@ -163,8 +163,12 @@ class BoundaryStage:
     jitter_mm : float, default 1.0
         Standard deviation of the noise added to the training landmarks (per landmark, and
         once more as a shift of the whole shape) before the template is warped onto them.
+    classifier : {"forest", "boosting"}, default "forest"
+        The voxel classifier's method (:class:`medseg.detection.VoxelClassifier`).
     n_estimators : int, default 15
-        Trees of the voxel classifier.
+        Trees of the voxel classifier's forest.
+    n_iterations : int, default 100
+        Iterations of its boosting.
     rows_per_case : int, default 4000
         Voxels of each training case the classifier learns from (drawn from the band).
     smoothness : tuple of float
@@ -213,7 +217,9 @@ class BoundaryStage:
         *,
         band_mm: float = 4.0,
         jitter_mm: float = 1.0,
+        classifier: str = "forest",
         n_estimators: int = 15,
+        n_iterations: int = 100,
         rows_per_case: int = 4000,
         smoothness: tuple = (0.25, 0.5, 1.0, 2.0),
         shape_weight: tuple = (0.0, 0.1, 0.3, 1.0),
@@ -226,7 +232,9 @@ class BoundaryStage:
     ):
         self.band_mm = band_mm
         self.jitter_mm = jitter_mm
+        self.classifier = classifier
         self.n_estimators = n_estimators
+        self.n_iterations = n_iterations
         self.rows_per_case = rows_per_case
         self.smoothness = smoothness
         self.shape_weight = shape_weight
@@ -352,8 +360,10 @@ class BoundaryStage:
         return ndimage.binary_dilation(view.domain(self.band_mm))
 
     def _classifier(self, rng) -> VoxelClassifier:
+        boosting = self.classifier == "boosting"
         return VoxelClassifier(
-            n_estimators=self.n_estimators,
+            self.classifier,
+            n_estimators=self.n_iterations if boosting else self.n_estimators,
             random_state=rng.randint(np.iinfo(np.int32).max),
             n_jobs=self.n_jobs,
         )
@@ -446,7 +456,8 @@ class BoundaryStage:
     # -- persistence ------------------------------------------------------------------------
 
     FORMAT = "medseg.segmenter.BoundaryStage"
-    FORMAT_VERSION = 2  # 2: atlases (atlases.npz, their features); 1 still loads
+    # 2: atlases (atlases.npz, their features); 3: a boosting classifier; 1 and 2 still load
+    FORMAT_VERSION = 3
     _PARAMS = (
         "band_mm",
         "jitter_mm",
@@ -462,9 +473,9 @@ class BoundaryStage:
         folder.mkdir(parents=True, exist_ok=True)
         header = {
             "format": self.FORMAT,
-            # a stage without atlases is what version 1 was: older medseg can read it
-            "format_version": 1 if self.atlases_ is None else self.FORMAT_VERSION,
-            "params": {name: getattr(self, name) for name in self._PARAMS},
+            "format_version": self._written_version(),
+            "params": {name: getattr(self, name) for name in self._PARAMS}
+            | {"classifier": self.classifier_.method, "n_iterations": self.n_iterations},
             "values": [int(v) for v in self.values_],
             "smoothness": float(self.smoothness_),
             "shape_weight": float(self.shape_weight_),
@@ -484,6 +495,13 @@ class BoundaryStage:
             self.context_.save(folder / "context.npz")
         return folder
 
+    def _written_version(self) -> int:
+        """The oldest format that holds this stage, so that older medseg reads what it can:
+        a forest without atlases is what version 1 was."""
+        if self.classifier_.method == "boosting":
+            return self.FORMAT_VERSION
+        return 1 if self.atlases_ is None else 2
+
     @classmethod
     def load(cls, folder) -> BoundaryStage:
         """Read a stage written by :meth:`save`; ``ModelFileError`` if it is not one."""
@@ -500,6 +518,7 @@ class BoundaryStage:
             stage.reference_ = np.asarray(arrays["reference"], dtype=float)
             stage.n_atlases = int(header.get("n_atlases", 0))  # stages before atlases: 0
             stage.atlas_patches = bool(header.get("atlas_patches", False))
+            stage.n_iterations = int(header["params"].get("n_iterations", stage.n_iterations))
         except (KeyError, TypeError, ValueError) as exc:
             raise ModelFileError(f"{source} is incomplete or corrupt: {exc}") from None
         if not stage.values_ or min(stage.values_) < 1 or max(stage.values_) > 255:
@@ -511,6 +530,7 @@ class BoundaryStage:
         if stage.n_atlases:
             stage.atlases_ = _load_atlases(folder / "atlases.npz", stage)
         stage.classifier_ = VoxelClassifier.load(folder / "classifier.npz")
+        stage.classifier = stage.classifier_.method  # stages before version 3: "forest"
         stage.context_ = None
         if stage.auto_context:
             if not (folder / "context.npz").is_file():
