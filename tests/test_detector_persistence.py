@@ -19,6 +19,7 @@ from test_detection import make_blob
 
 from medseg.detection import FeatureSettings, LandmarkDetector
 from medseg.detection import _forest_arrays as forest_arrays
+from medseg.detection import _tree_layout as tree_layout
 from medseg.detection._persistence import save_detector
 from medseg.errors import ModelFileError
 from medseg.io import load_arrays, save_arrays
@@ -235,13 +236,13 @@ def test_region_flag_must_match_the_forests(context_detector, tmp_path):
 
 def test_changed_sklearn_tree_layout_is_a_clear_error(extra_detector, tmp_path, monkeypatch):
     path = _saved(extra_detector, tmp_path / "det")
-    fields = dict(forest_arrays.NODE_DTYPE.fields)
+    fields = dict(tree_layout.NODE_DTYPE.fields)
     changed = np.dtype(
-        [(name, fields[name][0]) for name in forest_arrays.NODE_DTYPE.names]
+        [(name, fields[name][0]) for name in tree_layout.NODE_DTYPE.names]
         + [("new_field", np.float64)]
     )
-    forest_arrays._layout_problem.cache_clear()
-    monkeypatch.setattr(forest_arrays, "NODE_DTYPE", changed)
+    tree_layout.layout_problem.cache_clear()
+    monkeypatch.setattr(tree_layout, "NODE_DTYPE", changed)
     try:
         with pytest.raises(
             ModelFileError, match=r"forests\.npz.*installed scikit-learn.*new_field"
@@ -250,7 +251,7 @@ def test_changed_sklearn_tree_layout_is_a_clear_error(extra_detector, tmp_path, 
         with pytest.warns(UserWarning, match="skops"):  # saving falls back to format 1
             save_detector(extra_detector, tmp_path / "det1", format_version=2)
     finally:
-        forest_arrays._layout_problem.cache_clear()
+        tree_layout.layout_problem.cache_clear()
 
 
 def test_malformed_tree_in_a_skops_forest_is_refused():

@@ -19,6 +19,7 @@ from numpy.typing import ArrayLike
 from sklearn.ensemble import HistGradientBoostingClassifier
 from sklearn.tree._tree import NODE_DTYPE, TREE_LEAF, TREE_UNDEFINED, Tree
 
+from medseg.detection._tree_layout import check_tree_layout
 from medseg.errors import ParameterError
 
 __all__ = ["BoostedTrees"]
@@ -59,8 +60,6 @@ class BoostedTrees:
     @classmethod
     def from_estimator(cls, estimator: HistGradientBoostingClassifier) -> BoostedTrees:
         """The trees of a fitted ``HistGradientBoostingClassifier`` on numerical features."""
-        from medseg.detection._forest_arrays import check_tree_layout  # it stores this class
-
         check_tree_layout(source="a boosting classifier's trees")
         if getattr(estimator, "_preprocessor", None) is not None:
             raise ParameterError("categorical features are not supported")

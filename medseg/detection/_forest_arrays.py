@@ -30,20 +30,20 @@ uses them.
 Loading rebuilds real scikit-learn estimators: each tree's ``sklearn.tree._tree.Tree`` is
 given its state through ``Tree.__setstate__`` (``max_depth``, ``node_count``, ``nodes`` as a
 structured array of the installed ``NODE_DTYPE``, ``values``), as unpickling does. That is the
-one scikit-learn internal relied on; :func:`check_tree_layout` checks it (the state's keys, the
-node fields, and a probe tree that must predict as expected) and raises a
-:class:`ModelFileError` naming the scikit-learn version if a future release changes it, rather
-than rebuilding trees that would predict wrongly. ``Tree.__setstate__`` does not check the
-nodes it is given (a child index out of range would read outside the tree's memory), so the
-arrays are validated first: children after their parent and inside their tree, every node
-reached exactly once from its root, features in range, depths as stored, leaf values finite.
+one scikit-learn internal relied on; :func:`medseg.detection._tree_layout.check_tree_layout`
+checks it (the state's keys, the node fields, and a probe tree that must predict as expected)
+and raises a :class:`ModelFileError` naming the scikit-learn version if a future release
+changes it, rather than rebuilding trees that would predict wrongly. ``Tree.__setstate__``
+does not check the nodes it is given (a child index out of range would read outside the
+tree's memory), so the arrays are validated first: children after their parent and inside
+their tree, every node reached exactly once from its root, features in range, depths as
+stored, leaf values finite.
 The format, that validation and the rebuild are one idea and stay in one module (over 400
 lines for it).
 """
 
 from __future__ import annotations
 
-import functools
 import json
 
 import numpy as np
@@ -53,6 +53,7 @@ from sklearn.tree import DecisionTreeClassifier, ExtraTreeClassifier
 from sklearn.tree._tree import NODE_DTYPE, TREE_LEAF, TREE_UNDEFINED, Tree
 
 from medseg.detection._boosting import BoostedTrees
+from medseg.detection._tree_layout import TREE_STATE_KEYS, check_tree_layout, layout_problem
 from medseg.errors import ModelFileError, ParameterError
 from medseg.io import check_format, load_arrays, save_arrays
 
@@ -61,7 +62,6 @@ __all__ = [
     "FORMAT",
     "FORMAT_VERSION",
     "UnsupportedForest",
-    "check_tree_layout",
     "load_forests",
     "save_forests",
 ]
@@ -70,19 +70,6 @@ FORMAT = "medseg.detection.forests"
 FORMAT_VERSION = 1
 _FORESTS = {cls.__name__: cls for cls in (RandomForestClassifier, ExtraTreesClassifier)}
 _TREES = {cls.__name__: cls for cls in (DecisionTreeClassifier, ExtraTreeClassifier)}
-#: the fields of scikit-learn's tree nodes (``NODE_DTYPE``) this format knows how to fill
-NODE_FIELDS = (
-    "left_child",
-    "right_child",
-    "feature",
-    "threshold",
-    "impurity",
-    "n_node_samples",
-    "weighted_n_node_samples",
-    "missing_go_to_left",
-)
-#: the keys of ``Tree.__getstate__`` / ``__setstate__``
-TREE_STATE_KEYS = ("max_depth", "node_count", "nodes", "values")
 # fitted attributes of a forest and of a tree, beyond what their constructor sets
 _FOREST_FITTED = {
     "n_features_in_", "n_outputs_", "classes_", "n_classes_", "_n_samples",
@@ -104,58 +91,6 @@ _ARRAYS = {  # name -> allowed dtypes
 
 class UnsupportedForest(Exception):
     """A forest this format cannot store exactly (the caller falls back to skops)."""
-
-
-# ------------------------------------------------------------------------ sklearn's layout
-@functools.cache
-def _layout_problem() -> str | None:
-    """Why the installed scikit-learn's trees cannot be rebuilt from arrays, or None."""
-    if NODE_DTYPE.names is None or set(NODE_DTYPE.names) != set(NODE_FIELDS):
-        return f"its tree nodes have the fields {NODE_DTYPE.names}, expected {NODE_FIELDS}"
-    probe = Tree(1, np.array([2], dtype=np.intp), 1)
-    if set(probe.__getstate__()) != set(TREE_STATE_KEYS):
-        return f"its tree state has the keys {sorted(probe.__getstate__())}"
-    # a stump: x <= 0.5 goes left (class 0), NaN goes right (class 1)
-    nodes = np.zeros(3, dtype=NODE_DTYPE)
-    nodes["left_child"] = [1, TREE_LEAF, TREE_LEAF]
-    nodes["right_child"] = [2, TREE_LEAF, TREE_LEAF]
-    nodes["feature"] = [0, TREE_UNDEFINED, TREE_UNDEFINED]
-    nodes["threshold"] = [0.5, TREE_UNDEFINED, TREE_UNDEFINED]
-    values = np.array([[[np.nan, np.nan]], [[1.0, 0.0]], [[0.0, 1.0]]])
-    try:
-        probe.__setstate__({"max_depth": 1, "node_count": 3, "nodes": nodes, "values": values})
-        X = np.array([[0.25], [0.5], [0.75], [np.nan]], dtype=np.float32)
-        got = np.asarray(probe.predict(X)).reshape(len(X), 2)
-        back = probe.__getstate__()["nodes"]
-    except Exception as exc:  # any failure of the probe means the layout changed
-        return f"a probe tree could not be rebuilt ({type(exc).__name__}: {exc})"
-    if not np.array_equal(got, [[1.0, 0.0], [1.0, 0.0], [0.0, 1.0], [0.0, 1.0]]):
-        return "a probe tree rebuilt from its nodes predicts differently"
-    if any(not np.array_equal(back[f], nodes[f]) for f in ("left_child", "feature", "threshold")):
-        return "a probe tree does not keep the nodes it is given"
-    return None
-
-
-def check_tree_layout(saved_with: str | None = None, source: str = "the forests") -> None:
-    """Refuse to rebuild trees if the installed scikit-learn stores them differently.
-
-    ``saved_with`` is the scikit-learn version the file was written with, ``source`` the
-    file, both for the message.
-
-    Raises
-    ------
-    ModelFileError
-        The installed scikit-learn's ``Tree`` state or node fields are not those this
-        format fills (a newer scikit-learn changed them): say which, and what to do.
-    """
-    problem = _layout_problem()
-    if problem:
-        where = f" (written with scikit-learn {saved_with})" if saved_with else ""
-        raise ModelFileError(
-            f"{source}{where}: its forests cannot be rebuilt with the installed scikit-learn "
-            f"{sklearn.__version__}, {problem}; install the scikit-learn the model was saved "
-            "with, or re-save the detector in format version 1 (skops) with it"
-        )
 
 
 # ----------------------------------------------------------------------------------- save
@@ -342,8 +277,8 @@ def save_forests(path, forests) -> None:
         that JSON cannot carry, unknown fitted attributes, or an installed scikit-learn whose
         tree layout is unknown). Nothing is written.
     """
-    if _layout_problem():
-        raise UnsupportedForest(_layout_problem())
+    if layout_problem():
+        raise UnsupportedForest(layout_problem())
     specs = [_forest_spec(f) for f in forests]
     arrays = _node_arrays(forests)
     arrays["random_state"] = np.array([s for f in forests for s in _seeds(f)], dtype=np.int64)
