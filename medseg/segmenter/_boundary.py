@@ -29,7 +29,7 @@ classifier did not see, by the Dice they give.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from itertools import product
 from pathlib import Path
 
@@ -163,6 +163,11 @@ class BoundaryStage:
     jitter_mm : float, default 1.0
         Standard deviation of the noise added to the training landmarks (per landmark, and
         once more as a shift of the whole shape) before the template is warped onto them.
+    spacing_ratio : float, default 0.7
+        The stage's grid spacing as a fraction of the frame's (the training images' median
+        spacing). Finer than the images, so that labels lose little on their way into the
+        frame and back: the true hippocampus labels come back at 0.968 Dice through a grid
+        of the images' spacing, 0.999 at 0.7 of it.
     classifier : {"forest", "boosting"}, default "forest"
         The voxel classifier's method (:class:`medseg.detection.VoxelClassifier`).
     n_estimators : int, default 15
@@ -217,6 +222,7 @@ class BoundaryStage:
         *,
         band_mm: float = 4.0,
         jitter_mm: float = 1.0,
+        spacing_ratio: float = 0.7,
         classifier: str = "forest",
         n_estimators: int = 15,
         n_iterations: int = 100,
@@ -232,6 +238,7 @@ class BoundaryStage:
     ):
         self.band_mm = band_mm
         self.jitter_mm = jitter_mm
+        self.spacing_ratio = spacing_ratio
         self.classifier = classifier
         self.n_estimators = n_estimators
         self.n_iterations = n_iterations
@@ -265,6 +272,9 @@ class BoundaryStage:
         """
         if not (np.isfinite(self.band_mm) and self.band_mm > 0):
             raise ParameterError(f"`band_mm` must be > 0; got {self.band_mm}")
+        if not (np.isfinite(self.spacing_ratio) and self.spacing_ratio > 0):
+            raise ParameterError(f"`spacing_ratio` must be > 0; got {self.spacing_ratio}")
+        frame = self._grid(frame)
         if not 0 < self.validation_fraction < 1:
             raise ParameterError("`validation_fraction` must be in (0, 1)")
         if int(self.n_atlases) < 0:
@@ -308,6 +318,10 @@ class BoundaryStage:
         self.reference_ = np.asarray(signals[(self.smoothness_, self.shape_weight_)])
         self.classifier_ = self._classifier(rng).fit(*self._rows(cases, range(n), rng))
         return self
+
+    def _grid(self, frame: ShapeFrame) -> ShapeFrame:
+        """``frame`` on the stage's grid (:attr:`spacing_ratio` of its spacing)."""
+        return replace(frame, spacing=frame.spacing * float(self.spacing_ratio))
 
     def _with_context(self, cases, rng) -> list:
         """The cases with auto-context features from a first classifier that did not see
@@ -420,6 +434,7 @@ class BoundaryStage:
     ) -> Refined:
         """The refined label map of ``image`` (its grid, uint8, the label values), and how
         far image and shape agreed (:class:`Refined`)."""
+        frame = self._grid(frame)
         view = frame_view(
             frame, template_labels, template_landmarks, image, landmarks, atlases=self.atlases_
         )
@@ -456,8 +471,9 @@ class BoundaryStage:
     # -- persistence ------------------------------------------------------------------------
 
     FORMAT = "medseg.segmenter.BoundaryStage"
-    # 2: atlases (atlases.npz, their features); 3: a boosting classifier; 1 and 2 still load
-    FORMAT_VERSION = 3
+    # 2: atlases (atlases.npz, their features); 3: a boosting classifier; 4: a grid finer or
+    # coarser than the frame's (spacing_ratio); 1 to 3 still load
+    FORMAT_VERSION = 4
     _PARAMS = (
         "band_mm",
         "jitter_mm",
@@ -475,7 +491,11 @@ class BoundaryStage:
             "format": self.FORMAT,
             "format_version": self._written_version(),
             "params": {name: getattr(self, name) for name in self._PARAMS}
-            | {"classifier": self.classifier_.method, "n_iterations": self.n_iterations},
+            | {
+                "classifier": self.classifier_.method,
+                "n_iterations": self.n_iterations,
+                "spacing_ratio": float(self.spacing_ratio),
+            },
             "values": [int(v) for v in self.values_],
             "smoothness": float(self.smoothness_),
             "shape_weight": float(self.shape_weight_),
@@ -496,10 +516,13 @@ class BoundaryStage:
         return folder
 
     def _written_version(self) -> int:
-        """The oldest format that holds this stage, so that older medseg reads what it can:
-        a forest without atlases is what version 1 was."""
+        """The oldest format that holds this stage, so that older medseg reads what it can
+        (a forest without atlases on the frame's grid is what version 1 was) and refuses
+        what it would misread."""
+        if float(self.spacing_ratio) != 1.0:
+            return 4
         if self.classifier_.method == "boosting":
-            return self.FORMAT_VERSION
+            return 3
         return 1 if self.atlases_ is None else 2
 
     @classmethod
@@ -519,10 +542,14 @@ class BoundaryStage:
             stage.n_atlases = int(header.get("n_atlases", 0))  # stages before atlases: 0
             stage.atlas_patches = bool(header.get("atlas_patches", False))
             stage.n_iterations = int(header["params"].get("n_iterations", stage.n_iterations))
+            # stages before version 4 worked on the frame's own grid
+            stage.spacing_ratio = float(header["params"].get("spacing_ratio", 1.0))
         except (KeyError, TypeError, ValueError) as exc:
             raise ModelFileError(f"{source} is incomplete or corrupt: {exc}") from None
         if not stage.values_ or min(stage.values_) < 1 or max(stage.values_) > 255:
             raise ModelFileError(f"{source}: label values {stage.values_}")
+        if not (np.isfinite(stage.spacing_ratio) and stage.spacing_ratio > 0):
+            raise ModelFileError(f"{source}: grid spacing ratio {stage.spacing_ratio}")
         reference = stage.reference_
         if reference.ndim != 2 or reference.shape[1] != 2 or not np.isfinite(reference).all():
             raise ModelFileError(f"{source}: reference signals of shape {reference.shape}")
