@@ -170,6 +170,25 @@ def test_signed_distance_is_negative_inside_and_metric():
     assert d[0, 0, 8] == pytest.approx(3 * 2.0 - 0.5)
 
 
+def test_signed_distance_in_the_mask_box_is_the_whole_grids_there():
+    from medseg.segmenter._frame_view import mask_box
+
+    rng = np.random.default_rng(3)
+    spacing = (0.7, 1.3, 0.9)
+    for touching in (False, True):
+        mask = np.zeros((30, 26, 28), dtype=bool)
+        mask[8:14, 9:13, 10:19] = True  # two parts with background between them
+        mask[17:22, 6:16, 12:15] = rng.random((5, 10, 3)) < 0.7
+        if touching:  # one part at the grid's edge
+            mask[:4, 20:, :5] = True
+        box = mask_box(mask)
+        assert all(b.stop - b.start < n for b, n in zip(box, mask.shape, strict=True)) or touching
+        for part in (mask, mask & (np.arange(28) < 14)):  # the mask, and a label inside it
+            whole = signed_distance(part, spacing)
+            np.testing.assert_allclose(signed_distance(part[box], spacing), whole[box], atol=1e-5)
+    assert mask_box(np.zeros((4, 5, 6), dtype=bool)) == (slice(0, 4), slice(0, 5), slice(0, 6))
+
+
 def test_atlases_carried_onto_their_own_landmarks_give_their_labels_back(stage, cohort):
     fitted, frame, _ = stage
     frame = fitted._grid(frame)  # the atlases live on the stage's grid

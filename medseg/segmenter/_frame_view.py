@@ -22,7 +22,16 @@ from medseg.io import resample_affine
 from medseg.reconstruction import warp_labels
 from medseg.segmenter._atlases import FrameAtlases
 
-__all__ = ["FrameView", "frame_view", "signed_distance", "template_values", "to_input"]
+__all__ = [
+    "FrameView",
+    "frame_view",
+    "mask_box",
+    "signed_distance",
+    "template_values",
+    "to_input",
+]
+
+_FAR_MM = 1e3  # the signed distance given where it is not computed (far outside)
 
 
 def template_values(template_labels: sitk.Image) -> tuple:
@@ -40,6 +49,22 @@ def signed_distance(mask: np.ndarray, spacing_zyx) -> np.ndarray:
     outside = ndimage.distance_transform_edt(~mask, sampling=spacing_zyx)
     inside = ndimage.distance_transform_edt(mask, sampling=spacing_zyx)
     return np.where(mask, half - inside, outside - half).astype(np.float32)
+
+
+def mask_box(mask: np.ndarray, margin: int = 1) -> tuple[slice, ...]:
+    """The bounding box of ``mask`` grown by ``margin`` voxels (clipped to the grid).
+
+    With ``margin >= 1``, :func:`signed_distance` of the mask (or of any part of it) computed
+    on the box equals the whole grid's there: every voxel of the mask is inside, and the
+    nearest voxel outside it is too (moved into the box, an outside voxel only comes
+    closer, and the box's rim is outside). The whole grid when ``mask`` is empty.
+    """
+    index = np.argwhere(mask)
+    if not len(index):
+        return tuple(slice(0, n) for n in mask.shape)
+    lo = np.maximum(index.min(axis=0) - margin, 0)
+    hi = np.minimum(index.max(axis=0) + margin + 1, mask.shape)
+    return tuple(slice(int(a), int(b)) for a, b in zip(lo, hi, strict=True))
 
 
 @dataclass
@@ -106,14 +131,21 @@ def frame_view(
 
 
 def to_input(view: FrameView, labels: np.ndarray, image: sitk.Image) -> sitk.Image:
-    """Frame labels onto ``image``'s grid, through their linearly resampled signed distances."""
+    """Frame labels onto ``image``'s grid, through their linearly resampled signed distances.
+
+    The distances are computed in the labels' box (:func:`mask_box`, one voxel beyond it):
+    exact there, and beyond it only their sign, positive, matters.
+    """
     spacing = np.asarray(view.upright.GetSpacing(), dtype=float)[::-1]
     pose = view.pose  # the frame back to the input: x = R^T (y - t) / s
     matrix = pose.rotation.T / pose.scale
     offset = -(pose.rotation.T @ pose.translation) / pose.scale
+    box = mask_box(labels > 0)
 
     def moved(mask: np.ndarray) -> np.ndarray:
-        field = sitk.GetImageFromArray(signed_distance(mask, spacing))
+        distances = np.full(mask.shape, _FAR_MM, dtype=np.float32)
+        distances[box] = signed_distance(mask[box], spacing)
+        field = sitk.GetImageFromArray(distances)
         field.CopyInformation(view.upright)
         out = resample_affine(field, matrix, offset, image, fill="border")
         return sitk.GetArrayFromImage(out)
