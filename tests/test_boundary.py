@@ -190,6 +190,28 @@ def test_signed_distance_in_the_mask_box_is_the_whole_grids_there():
     assert mask_box(np.zeros((4, 5, 6), dtype=bool)) == (slice(0, 4), slice(0, 5), slice(0, 6))
 
 
+def test_the_frame_views_distances_are_the_whole_grids_within_the_stages_reach(stage, cohort):
+    from medseg.segmenter._frame_view import frame_view
+
+    fitted, frame, template = stage
+    frame = fitted._grid(frame)
+    image, _, landmarks = cohort[10]
+    for use in (None, np.arange(10) < 5):  # the template alone, and an atlas vote
+        atlases = None if use is None else fitted.atlases_
+        whole = frame_view(frame, *template, image, landmarks + 1.0, atlases=atlases, use=use)
+        reach = fitted._reach(frame)
+        near = frame_view(
+            frame, *template, image, landmarks + 1.0, atlases=atlases, use=use, reach_mm=reach
+        )
+        within = whole.distances[0] <= reach
+        assert not within.all()  # the grid reaches beyond: the box is smaller
+        np.testing.assert_array_equal(near.distances[:, within], whole.distances[:, within])
+        assert (near.distances[0][~within] > reach).all()
+        nodes = fitted._nodes(whole)
+        np.testing.assert_array_equal(fitted._nodes(near), nodes)
+        np.testing.assert_array_equal(fitted._features(near, nodes), fitted._features(whole, nodes))
+
+
 def test_atlases_carried_onto_their_own_landmarks_give_their_labels_back(stage, cohort):
     fitted, frame, _ = stage
     frame = fitted._grid(frame)  # the atlases live on the stage's grid

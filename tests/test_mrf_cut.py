@@ -240,6 +240,47 @@ def test_potts_expansion_bound_and_local_optimality(k, seed):
     expansion_moves_do_not_improve(unary, edges, weights, f, tol=1e-6)
 
 
+def test_potts_expansion_stops_after_k_failed_moves_with_the_labels_of_whole_cycles(
+    monkeypatch,
+):
+    """The early stop skips only moves that would fail: same labels as cycling until a
+    whole cycle brings nothing (the loop written out here), in fewer moves."""
+    from medseg.mrf import _cut
+
+    move = _cut._expansion_move
+
+    def whole_cycles(u, e, w):
+        f = np.argmin(u, axis=1)
+        energy = _cut._potts_energy(u, e, w, f)
+        tol = _cut._ACCEPT_RTOL * (np.abs(u[np.arange(len(u)), f]).sum() + w.sum())
+        moves = 0
+        while True:
+            improved = False
+            for alpha in range(u.shape[1]):
+                g = move(u, e, w, f, alpha)
+                moves += 1
+                if g is not None and _cut._potts_energy(u, e, w, g) < energy - tol:
+                    f, energy, improved = g, _cut._potts_energy(u, e, w, g), True
+            if not improved:
+                return f, moves
+
+    calls = []
+    monkeypatch.setattr(_cut, "_expansion_move", lambda *a: calls.append(1) or move(*a))
+    saved = 0
+    for seed in range(8):
+        rng = np.random.default_rng(700 + seed)
+        edges, _ = grid_edges(np.ones((3, 3, 4), dtype=bool))
+        unary = rng.uniform(0, 3, size=(36, 3))
+        weights = rng.uniform(0, 2, size=len(edges))
+        calls.clear()
+        f = potts_expansion(unary, edges, weights)
+        expected, moves = whole_cycles(unary, edges, weights)
+        np.testing.assert_array_equal(f, expected)
+        assert len(calls) <= moves
+        saved += moves - len(calls)
+    assert saved > 0
+
+
 def test_potts_expansion_usually_optimal():
     hits = 0
     for seed in range(10):

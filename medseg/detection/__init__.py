@@ -12,9 +12,15 @@ from medseg.detection._features import FeatureSettings, compute_features, featur
 from medseg.detection._memory import detection_bytes, feature_map_bytes
 from medseg.detection._persistence import save_detector
 from medseg.detection._sampling import LandmarkSamples, sample_landmark_voxels
-from medseg.detection._voxels import VoxelClassifier, context_features, voxel_features
+from medseg.detection._voxels import (
+    CONTRAST_RING_MM,
+    VoxelClassifier,
+    context_features,
+    voxel_features,
+)
 
 __all__ = [
+    "CONTRAST_RING_MM",
     "CandidateSet",
     "FeatureSettings",
     "LandmarkDetector",

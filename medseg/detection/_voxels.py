@@ -32,7 +32,13 @@ from medseg.detection._features import FeatureSettings, compute_features, image_
 from medseg.detection._forest_arrays import load_forests, save_forests
 from medseg.errors import ModelFileError, NotFittedError, ParameterError
 
-__all__ = ["VoxelClassifier", "context_features", "voxel_features", "VOXEL_FEATURES"]
+__all__ = [
+    "CONTRAST_RING_MM",
+    "VoxelClassifier",
+    "context_features",
+    "voxel_features",
+    "VOXEL_FEATURES",
+]
 
 #: the rotation-invariant part of the features (:func:`medseg.detection.compute_features`)
 VOXEL_FEATURES = FeatureSettings(
@@ -44,14 +50,16 @@ _DIRECTIONAL_SCALE_MM = 1.0
 #: the smoothed intensity this far (mm) before and after each voxel along the frame's axes
 _CONTEXT_MM = (3.0, 6.0)
 _CONTEXT_SCALE_MM = 1.5
-_RING_MM = (1.0, 4.0)  # the ring outside the shape whose median is the background's
+#: the ring outside the shape (mm) whose median is the background's: how far beyond the
+#: shape :func:`voxel_features` reads the union's signed distances
+CONTRAST_RING_MM = (1.0, 4.0)
 
 
 def _contrast(arr: np.ndarray, distance: np.ndarray) -> tuple[float, float]:
     """Centre and scale of the normalisation: the median inside the shape, and its
     distance to the median of the ring just outside (the structure's contrast)."""
     inside = arr[distance < 0]
-    ring = arr[(distance > _RING_MM[0]) & (distance <= _RING_MM[1])]
+    ring = arr[(distance > CONTRAST_RING_MM[0]) & (distance <= CONTRAST_RING_MM[1])]
     if inside.size < 10 or ring.size < 10:
         centre = float(np.median(arr))
         scale = float(np.subtract(*np.percentile(arr, [75, 25])))

@@ -463,17 +463,19 @@ def potts_expansion(
     if k == 2:
         f, energy = _better(u, e, w, f, energy, _exact_two_label(u, e, w))
     tol = _ACCEPT_RTOL * (np.abs(u[np.arange(n), f]).sum() + w.sum())
-    for _ in range(max_cycles):
-        improved = False
-        for alpha in range(k):
-            g = _expansion_move(u, e, w, f, alpha)
-            if g is None:
-                continue
-            g_energy = _potts_energy(u, e, w, g)
-            if g_energy < energy - tol:
-                f, energy, improved = g, g_energy, True
-        if not improved:
-            break
+    # Cycles over the labels until a whole cycle brings nothing. A move depends only on the
+    # labelling it starts from, so once the last k moves failed every other one would too:
+    # stopping there skips the end of the last cycle and gives the same labels.
+    failures = 0
+    for move in range(max_cycles * k):
+        g = _expansion_move(u, e, w, f, move % k)
+        g_energy = None if g is None else _potts_energy(u, e, w, g)
+        if g_energy is not None and g_energy < energy - tol:
+            f, energy, failures = g, g_energy, 0
+        else:
+            failures += 1
+            if failures == k:
+                break
     return f
 
 

@@ -38,7 +38,12 @@ import SimpleITK as sitk
 from scipy import ndimage
 from sklearn.utils import check_random_state
 
-from medseg.detection import VoxelClassifier, context_features, voxel_features
+from medseg.detection import (
+    CONTRAST_RING_MM,
+    VoxelClassifier,
+    context_features,
+    voxel_features,
+)
 from medseg.errors import ModelFileError, ParameterError
 from medseg.frame import ShapeFrame
 from medseg.io import check_format, load_arrays, save_arrays
@@ -355,6 +360,7 @@ class BoundaryStage:
             points + noise,
             atlases=self.atlases_,
             use=use,
+            reach_mm=self._reach(frame),
         )
         truth = sitk.GetArrayFromImage(frame.resample(label_map, view.pose, is_label=True))
         truth = np.where(np.isin(truth, view.values), truth, 0)
@@ -368,6 +374,11 @@ class BoundaryStage:
         if view.atlas is None:
             return features
         return np.hstack([features, view.atlas[:, nodes].T.astype(np.float32)])
+
+    def _reach(self, frame: ShapeFrame) -> float:
+        """How far outside the shape (mm) the stage reads the signed distances: the band and
+        the layer of voxels around it (:meth:`_nodes`), and the contrast's ring."""
+        return max(float(self.band_mm), CONTRAST_RING_MM[1]) + frame.spacing
 
     def _nodes(self, view: FrameView) -> np.ndarray:
         """The domain and one layer of voxels around it (held to background)."""
@@ -436,7 +447,13 @@ class BoundaryStage:
         far image and shape agreed (:class:`Refined`)."""
         frame = self._grid(frame)
         view = frame_view(
-            frame, template_labels, template_landmarks, image, landmarks, atlases=self.atlases_
+            frame,
+            template_labels,
+            template_landmarks,
+            image,
+            landmarks,
+            atlases=self.atlases_,
+            reach_mm=self._reach(frame),
         )
         nodes = self._nodes(view)
         features = self._features(view, nodes)

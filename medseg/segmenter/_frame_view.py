@@ -44,7 +44,7 @@ def signed_distance(mask: np.ndarray, spacing_zyx) -> np.ndarray:
     voxel on either side of the boundary."""
     mask = np.asarray(mask, dtype=bool)
     if not mask.any():
-        return np.full(mask.shape, 1e3, dtype=np.float32)
+        return np.full(mask.shape, _FAR_MM, dtype=np.float32)
     half = 0.5 * float(np.min(spacing_zyx))
     outside = ndimage.distance_transform_edt(~mask, sampling=spacing_zyx)
     inside = ndimage.distance_transform_edt(mask, sampling=spacing_zyx)
@@ -109,9 +109,15 @@ def frame_view(
     *,
     atlases: FrameAtlases | None = None,
     use: np.ndarray | None = None,
+    reach_mm: float = np.inf,
 ) -> FrameView:
     """``image`` resampled into the frame of ``landmarks``, the template warped there, or
-    with ``atlases`` the vote of those ``use`` selects (:meth:`FrameAtlases.fuse`)."""
+    with ``atlases`` the vote of those ``use`` selects (:meth:`FrameAtlases.fuse`).
+
+    The signed distances are exact wherever the union's is at most ``reach_mm``: they are
+    computed in the union's box grown by more than that (:func:`mask_box`), and every voxel
+    beyond it is farther; there they are ``_FAR_MM``.
+    """
     pose = frame.pose(landmarks)
     upright = frame.resample(image, pose)
     atlas = None
@@ -124,9 +130,15 @@ def frame_view(
         )
     values = template_values(template_labels)
     spacing = np.asarray(upright.GetSpacing(), dtype=float)[::-1]
-    union = signed_distance(shape > 0, spacing)
-    own = [signed_distance(shape == v, spacing) for v in values] if len(values) > 1 else [union]
-    distances = np.stack([union, *own])
+    margin = int(min(np.ceil(reach_mm / spacing.min()) + 1, max(shape.shape)))
+    box = mask_box(shape > 0, margin=margin)
+    part = shape[box]
+    masks = [part > 0] + ([part == v for v in values] if len(values) > 1 else [])
+    distances = np.full((1 + len(values), *shape.shape), _FAR_MM, dtype=np.float32)
+    for k, mask in enumerate(masks):
+        distances[(k, *box)] = signed_distance(mask, spacing)
+    if len(values) == 1:  # the one label's distances are the union's
+        distances[1] = distances[0]
     return FrameView(pose, upright, shape, distances, values, atlas)
 
 
