@@ -7,6 +7,8 @@ exact geometry whatever its spacing and direction.
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pytest
 import SimpleITK as sitk
@@ -130,9 +132,17 @@ def test_sub_labels_come_back_in_an_oblique_anisotropic_geometry(stage, cohort):
 
 def test_weights_are_chosen_on_held_out_cases_and_the_stage_round_trips(stage, cohort, tmp_path):
     fitted, frame, template = stage
-    assert len(fitted.selection_) == 4
-    best = max(fitted.selection_, key=lambda row: row[2])
-    assert (fitted.smoothness_, fitted.shape_weight_) == best[:2]
+    rows = {tuple(row[:3]): row[3] for row in fitted.selection_}
+    best = max(rows, key=rows.get)
+    chosen = (fitted.smoothness_, fitted.shape_weight_, fitted.foreground_bias_)
+    assert chosen == best
+    pairs = [(s, w) for s in (0.5, 2.0) for w in (0.0, 0.3)]
+    biases = BoundaryStage().foreground_bias
+    # every pair at the first cost, every cost at one pair, every pair at the chosen cost
+    assert all((s, w, biases[0]) in rows for s, w in pairs)
+    assert any(all((s, w, b) in rows for b in biases) for s, w in pairs)
+    assert all((s, w, fitted.foreground_bias_) in rows for s, w in pairs)
+    assert len(rows) == len(fitted.selection_) <= 2 * len(pairs) + len(biases)
     assert fitted.values_ == (1, 2)
     again = BoundaryStage.load(fitted.save(tmp_path / "boundary"))
     image, _, landmarks = cohort[10]
@@ -288,7 +298,7 @@ def test_a_stage_of_the_first_format_loads_without_atlases(stage, cohort, tmp_pa
     # nothing of either (a forest without atlases on that grid is still written as format 1)
     plain = BoundaryStage(
         n_estimators=2, rows_per_case=300, smoothness=(1.0,), shape_weight=(0.3,),
-        n_atlases=0, spacing_ratio=1.0, random_state=0,
+        foreground_bias=(0.0,), n_atlases=0, spacing_ratio=1.0, random_state=0,
     )  # fmt: skip
     images, labels, landmarks = zip(*cohort[:10], strict=True)
     plain.fit(frame, *template, list(images), list(labels), np.stack(landmarks))
@@ -335,7 +345,8 @@ def test_a_boosting_stage_refines_round_trips_and_says_its_format(stage, cohort,
     images, labels, landmarks = zip(*cohort[:10], strict=True)
     boosted = BoundaryStage(
         classifier="boosting", n_iterations=30, rows_per_case=3000, smoothness=(0.5, 2.0),
-        shape_weight=(0.0, 0.3), validation_fraction=0.5, spacing_ratio=1.0, random_state=0,
+        shape_weight=(0.0, 0.3), foreground_bias=(0.0,), validation_fraction=0.5,
+        spacing_ratio=1.0, random_state=0,
     ).fit(frame, *template, list(images), list(labels), np.stack(landmarks))  # fmt: skip
     assert boosted.classifier_.method == "boosting"
     image, truth, points = cohort[10]
@@ -379,12 +390,59 @@ def test_the_stage_grid_finer_than_the_frame_keeps_the_labels_and_says_its_forma
     assert fitted.spacing_ratio == 0.7  # the default
     coarse, fine = through(1.0), through(0.7)
     assert fine > 0.995 and fine > coarse + 0.01  # 1.000 and 0.979 when written
-    folder = fitted.save(tmp_path / "fine")
+    unbiased = copy.copy(fitted)
+    unbiased.foreground_bias_ = 0.0  # without a background cost: what format 4 holds
+    folder = unbiased.save(tmp_path / "fine")
     header, _ = load_arrays(folder / "stage.npz", what="boundary stage")
-    assert header["format_version"] == BoundaryStage.FORMAT_VERSION == 4
+    assert header["format_version"] == 4
+    folder = fitted.save(tmp_path / "fine")
     again = BoundaryStage.load(folder)
     assert again.spacing_ratio == 0.7
     a, b = (s.refine(frame, *template, image, landmarks) for s in (again, fitted))
     np.testing.assert_array_equal(sitk.GetArrayFromImage(a.label), sitk.GetArrayFromImage(b.label))
     with pytest.raises(ParameterError, match="spacing_ratio"):
         BoundaryStage(spacing_ratio=0.0).fit(frame, *template, [image], [truth], landmarks[None])
+
+
+def test_a_higher_background_cost_never_shrinks_the_cut(stage, cohort):
+    from medseg.segmenter._boundary import _cut
+    from medseg.segmenter._frame_view import frame_view
+
+    fitted, frame, template = stage
+    image, _, landmarks = cohort[10]
+    view = frame_view(fitted._grid(frame), *template, image, landmarks + 1.0)
+    nodes = fitted._nodes(view)
+    rng = np.random.default_rng(0)
+    # a classifier that doubts the boundary: the union's probability falls off with the
+    # signed distance, plus noise, split between the two labels
+    union = 1 / (1 + np.exp(view.distances[0][nodes] / 1.5 + rng.normal(0, 0.5, nodes.sum())))
+    share = rng.uniform(0.3, 0.7, nodes.sum())
+    probabilities = np.stack([1 - union, union * share, union * (1 - share)], axis=1)
+    sizes = [
+        int((_cut(view, probabilities, nodes, band_mm=fitted.band_mm, smoothness=1.0,
+                  shape_weight=0.0, foreground_bias=bias) > 0).sum())
+        for bias in (0.0, 0.3, 1.0, 3.0)
+    ]  # fmt: skip
+    assert sizes == sorted(sizes) and sizes[-1] > sizes[0]
+
+
+def test_a_stage_without_a_background_cost_in_its_header_loads_with_none(stage, cohort, tmp_path):
+    from medseg.io import load_arrays, save_arrays
+
+    fitted, frame, template = stage
+    biased = copy.copy(fitted)
+    biased.foreground_bias_ = 0.4
+    folder = biased.save(tmp_path / "biased")
+    header, arrays = load_arrays(folder / "stage.npz", what="boundary stage")
+    assert header["format_version"] == BoundaryStage.FORMAT_VERSION == 5
+    assert BoundaryStage.load(folder).foreground_bias_ == 0.4
+    del header["foreground_bias"]  # a stage of format 4
+    header["format_version"] = 4
+    save_arrays(folder / "stage.npz", arrays, header=header)
+    old = BoundaryStage.load(folder)
+    assert old.foreground_bias_ == 0.0
+    image, _, points = cohort[10]
+    unbiased = copy.copy(fitted)
+    unbiased.foreground_bias_ = 0.0
+    a, b = (s.refine(frame, *template, image, points) for s in (old, unbiased))
+    np.testing.assert_array_equal(sitk.GetArrayFromImage(a.label), sitk.GetArrayFromImage(b.label))

@@ -23,8 +23,9 @@ into the model):
 The classifier learns from training images seen through landmarks jittered by about the
 error of found landmarks, so it meets at training the misplaced templates it meets at test
 time (cross-fitted segmenter outputs would be truer, at the cost of training the whole
-segmenter once per fold). The cut's two weights are chosen on training cases the
-classifier did not see, by the Dice they give.
+segmenter once per fold). The cut's two weights and its background cost (which undoes the
+shrinking of a classifier and a boundary term that side with background where in doubt) are
+chosen on training cases the classifier did not see, by the Dice they give.
 """
 
 from __future__ import annotations
@@ -83,15 +84,18 @@ def _cut(
     band_mm: float,
     smoothness: float,
     shape_weight: float,
+    foreground_bias: float = 0.0,
 ) -> np.ndarray:
     """The labels (values, on the frame grid) minimising the stage's energy.
 
     ``probabilities`` are the classifier's (n, 1 + K) over the voxels ``nodes`` (a
-    (Z, Y, X) bool array: the domain and its outer layer, which is held to background).
+    (Z, Y, X) bool array: the domain and its outer layer, which is held to background);
+    ``foreground_bias`` is added to every voxel's cost of background.
     """
     distances = view.distances[:, nodes]
     unary = -np.log(np.clip(probabilities, _MIN_PROBABILITY, None)).T
     unary = unary + shape_weight * _wrong_side(distances)
+    unary[0] += foreground_bias
     unary[1:, distances[0] > band_mm] = np.inf  # the outer layer: background
     unary[0, distances[0] < -band_mm] = np.inf  # deep inside: never background
     spacing = np.asarray(view.upright.GetSpacing(), dtype=float)[::-1]
@@ -185,8 +189,15 @@ class BoundaryStage:
         Candidate weights of the contrast-sensitive Potts term.
     shape_weight : tuple of float
         Candidate weights (per mm) of the shape term.
+    foreground_bias : tuple of float
+        Candidate costs (nats) added to background at every voxel of the cut, chosen like
+        the weights, after them (then the weights again at the chosen cost). Where the
+        boundary is uncertain the classifier's probabilities lean to the band's majority,
+        background, and the Potts term shortens the boundary: without it the hippocampus
+        came out about 6 % smaller than the reference (median of 61 held-out cases), with
+        the chosen cost 2 % larger (mean) and 0.004 higher in Dice.
     validation_fraction : float, default 0.25
-        Training cases held out from the classifier to choose the two weights.
+        Training cases held out from the classifier to choose the weights and the cost.
     auto_context : bool, default True
         A second classifier on the first one's probabilities around each voxel (its
         training cases see the first classifier's answers cross-fitted on two halves).
@@ -213,10 +224,10 @@ class BoundaryStage:
         With ``n_atlases > 0``.
     values_ : tuple of int
         The label values it returns.
-    smoothness_, shape_weight_ : float
-        The chosen weights.
-    selection_ : list of (smoothness, shape_weight, score)
-        The validation score of every candidate pair.
+    smoothness_, shape_weight_, foreground_bias_ : float
+        The chosen weights and background cost.
+    selection_ : list of (smoothness, shape_weight, foreground_bias, score)
+        The validation score of every candidate tried.
     reference_ : (V, 2) float array
         :func:`_signals` (disagreement, change) of the validation cases with the chosen
         weights: what :attr:`Refined.score` compares a case with.
@@ -234,6 +245,7 @@ class BoundaryStage:
         rows_per_case: int = 4000,
         smoothness: tuple = (0.25, 0.5, 1.0, 2.0),
         shape_weight: tuple = (0.0, 0.1, 0.3, 1.0),
+        foreground_bias: tuple = (0.0, 0.2, 0.4, 0.6),
         validation_fraction: float = 0.25,
         auto_context: bool = True,
         n_atlases: int = 0,
@@ -250,6 +262,7 @@ class BoundaryStage:
         self.rows_per_case = rows_per_case
         self.smoothness = smoothness
         self.shape_weight = shape_weight
+        self.foreground_bias = foreground_bias
         self.validation_fraction = validation_fraction
         self.auto_context = auto_context
         self.n_atlases = n_atlases
@@ -319,8 +332,9 @@ class BoundaryStage:
         held, kept = order[:n_val], order[n_val:]
         classifier = self._classifier(rng).fit(*self._rows(cases, kept, rng))
         self.selection_, signals = self._select(cases, held, classifier)
-        self.smoothness_, self.shape_weight_, _ = max(self.selection_, key=lambda r: r[2])
-        self.reference_ = np.asarray(signals[(self.smoothness_, self.shape_weight_)])
+        *chosen, _ = max(self.selection_, key=lambda r: r[3])
+        self.smoothness_, self.shape_weight_, self.foreground_bias_ = chosen
+        self.reference_ = np.asarray(signals[tuple(chosen)])
         self.classifier_ = self._classifier(rng).fit(*self._rows(cases, range(n), rng))
         return self
 
@@ -403,25 +417,42 @@ class BoundaryStage:
         return np.vstack(X), np.concatenate(y)
 
     def _select(self, cases, held, classifier) -> tuple[list, dict]:
-        """The validation score of each pair of weights, and the cases' :func:`_signals`."""
-        scores = {pair: [] for pair in product(self.smoothness, self.shape_weight)}
-        signals = {pair: [] for pair in scores}
-        for i in held:
-            view, truth, nodes, features = cases[i]
-            probabilities = self._probabilities(classifier, features)
-            for smooth, weight in scores:
-                cut = _cut(
-                    view,
-                    probabilities,
-                    nodes,
-                    band_mm=self.band_mm,
-                    smoothness=smooth,
-                    shape_weight=weight,
-                )
-                scores[(smooth, weight)].append(_dice_scores(cut, truth, view.values))
-                signals[(smooth, weight)].append(_signals(view, probabilities, nodes, cut))
-        table = [(float(s), float(w), float(np.mean(v))) for (s, w), v in scores.items()]
-        return table, {(float(s), float(w)): v for (s, w), v in signals.items()}
+        """The validation score of the candidates tried, and the cases' :func:`_signals`.
+
+        Coordinate-wise: every pair of weights at the first background cost, every cost at
+        the best pair, then every pair again at the best cost.
+        """
+        held = [(cases[i], self._probabilities(classifier, cases[i][3])) for i in held]
+        scores: dict[tuple, float] = {}
+        signals: dict[tuple, list] = {}
+
+        def score(candidates) -> tuple:
+            for key in candidates:
+                if key in scores:
+                    continue
+                smooth, weight, bias = key
+                values, said = [], []
+                for (view, truth, nodes, _), probabilities in held:
+                    cut = _cut(
+                        view,
+                        probabilities,
+                        nodes,
+                        band_mm=self.band_mm,
+                        smoothness=smooth,
+                        shape_weight=weight,
+                        foreground_bias=bias,
+                    )
+                    values.append(_dice_scores(cut, truth, view.values))
+                    said.append(_signals(view, probabilities, nodes, cut))
+                scores[key], signals[key] = float(np.mean(values)), said
+            return max(scores, key=scores.get)
+
+        pairs = [(float(s), float(w)) for s, w in product(self.smoothness, self.shape_weight)]
+        biases = [float(b) for b in self.foreground_bias]
+        best = score([(s, w, biases[0]) for s, w in pairs])
+        best = score([(*best[:2], b) for b in biases])
+        score([(s, w, best[2]) for s, w in pairs])
+        return [(*key, value) for key, value in scores.items()], signals
 
     def _probabilities(self, classifier: VoxelClassifier, features: np.ndarray) -> np.ndarray:
         """(n, 1 + K) probabilities in the order background, ``values_`` (0 if unseen)."""
@@ -467,6 +498,7 @@ class BoundaryStage:
             band_mm=self.band_mm,
             smoothness=self.smoothness_,
             shape_weight=self.shape_weight_,
+            foreground_bias=self.foreground_bias_,
         )
         disagreement, change = _signals(view, probabilities, nodes, labels)
         return Refined(
@@ -489,8 +521,9 @@ class BoundaryStage:
 
     FORMAT = "medseg.segmenter.BoundaryStage"
     # 2: atlases (atlases.npz, their features); 3: a boosting classifier; 4: a grid finer or
-    # coarser than the frame's (spacing_ratio); 1 to 3 still load
-    FORMAT_VERSION = 4
+    # coarser than the frame's (spacing_ratio); 5: a background cost (foreground_bias);
+    # 1 to 4 still load
+    FORMAT_VERSION = 5
     _PARAMS = (
         "band_mm",
         "jitter_mm",
@@ -516,6 +549,7 @@ class BoundaryStage:
             "values": [int(v) for v in self.values_],
             "smoothness": float(self.smoothness_),
             "shape_weight": float(self.shape_weight_),
+            "foreground_bias": float(self.foreground_bias_),
             "n_atlases": 0 if self.atlases_ is None else len(self.atlases_),
             "atlas_patches": self.atlases_ is not None and self.atlases_.images is not None,
         }
@@ -536,6 +570,8 @@ class BoundaryStage:
         """The oldest format that holds this stage, so that older medseg reads what it can
         (a forest without atlases on the frame's grid is what version 1 was) and refuses
         what it would misread."""
+        if float(self.foreground_bias_) != 0.0:
+            return 5
         if float(self.spacing_ratio) != 1.0:
             return 4
         if self.classifier_.method == "boosting":
@@ -554,6 +590,8 @@ class BoundaryStage:
             stage.values_ = tuple(int(v) for v in header["values"])
             stage.smoothness_ = float(header["smoothness"])
             stage.shape_weight_ = float(header["shape_weight"])
+            # stages before version 5 cut without a background cost
+            stage.foreground_bias_ = float(header.get("foreground_bias", 0.0))
             stage.selection_ = [tuple(map(float, row)) for row in arrays["selection"]]
             stage.reference_ = np.asarray(arrays["reference"], dtype=float)
             stage.n_atlases = int(header.get("n_atlases", 0))  # stages before atlases: 0
@@ -567,6 +605,8 @@ class BoundaryStage:
             raise ModelFileError(f"{source}: label values {stage.values_}")
         if not (np.isfinite(stage.spacing_ratio) and stage.spacing_ratio > 0):
             raise ModelFileError(f"{source}: grid spacing ratio {stage.spacing_ratio}")
+        if not np.isfinite(stage.foreground_bias_):
+            raise ModelFileError(f"{source}: background cost {stage.foreground_bias_}")
         reference = stage.reference_
         if reference.ndim != 2 or reference.shape[1] != 2 or not np.isfinite(reference).all():
             raise ModelFileError(f"{source}: reference signals of shape {reference.shape}")
