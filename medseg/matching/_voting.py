@@ -72,7 +72,9 @@ def _modes(b, votes, weights, *, n_modes, radius, chunk=256):
     tree = cKDTree(b.vertices)
     for s in range(0, n, chunk):
         p = pos[s : s + chunk]
-        d2 = ((p[:, :, None, :] - p[:, None, :, :]) ** 2).sum(-1)
+        sq = (p**2).sum(-1)
+        # squared distances among each vertex's votes by one batched product
+        d2 = np.maximum(sq[:, :, None] + sq[:, None, :] - 2 * np.matmul(p, p.transpose(0, 2, 1)), 0)
         wv = weights[s : s + chunk]  # (c, T)
         kern = np.exp(-d2 / (2 * radius**2)) * wv[:, None, :]
         density = kern.sum(-1) / wv.sum(axis=1, keepdims=True)  # (c, T)
