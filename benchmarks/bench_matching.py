@@ -13,6 +13,10 @@ Methods, all in the same run on the same pairs:
 * ``medseg``: :func:`medseg.matching.match_surfaces` (default options, with the spectral
   refinement);
 * ``medseg-norefine``: the same run's map before the refinement (the paper's pipeline);
+* ``medseg-votes``: the same run's map before the dense stage (each vertex on its best
+  dense candidate: the sparse stage and the Möbius votes alone), and
+  ``medseg-votes-refined`` that map refined as the dense one is (ablations; not timed);
+* ``medseg-solve<i>``: the map of each sparse solve (the choice among them);
 * ``pyfmaps``: functional maps with WKS descriptors, orientation term and ZoomOut (pyfmaps
   1.3.1, an optional benchmark-only dependency: ``pip install pyfmaps==1.3.1``).
 
@@ -23,6 +27,11 @@ leaves usable numbers; ``--resume`` skips, per method, pairs that method already
 ``--summarise`` prints the aggregate table from that file (the latest score of each pair and
 method, over the pairs of each set that every method scored unless ``--all-pairs``). Each
 score records wall time and the process's CPU time (shared machine).
+
+A map is counted as *flipped* when its error against the mirrored ground truth is less than
+half its error against the true one (the symmetry-aware score picks the mirror by a clear
+margin). The summary gives flips per 100 pairs, medseg's dense-stage duality gaps, and the
+ratio of medseg's time per pair to pyfmaps' on the pairs both scored.
 
 Usage::
 
@@ -68,6 +77,17 @@ def _pyfmaps(path_a: Path, path_b: Path) -> np.ndarray:
     return np.asarray(model.get_p2p(FM=fmap), dtype=np.int64)
 
 
+def _refine_like_medseg(va, fa, vb, fb, forward) -> np.ndarray:
+    """``forward`` refined by medseg's spectral refinement, on surfaces prepared as the
+    matcher prepares them (the ablation without the dense stage)."""
+    from medseg.geometry import vertex_areas
+    from medseg.matching import prepare_surface, spectral_refine
+
+    a = prepare_surface(va, fa, n_samples=1, random_state=0)
+    b = prepare_surface(vb, fb, n_samples=1, random_state=0)
+    return spectral_refine(forward, a.evecs, vertex_areas(a.vertices, a.faces), b.evecs)
+
+
 def _log_area_ratio(va, fa, vb, fb, forward) -> tuple[float, float]:
     area_a = face_areas(va, fa) / face_areas(va, fa).sum()
     area_b = face_areas(vb[forward], fa) / face_areas(vb, fb).sum()
@@ -91,6 +111,8 @@ def _score(vb, fb, gt_a, gt_b, gt_sym, maps: dict) -> dict:
         result[name] = {
             "direct_mean": float(d.mean()),
             "sym_mean": float(best.mean()),
+            "mirror_mean": float(s.mean()),
+            "flipped": bool(s.mean() < 0.5 * d.mean()),
             "direct_curve": [float(np.mean(d <= t)) for t in THRESHOLDS],
             "sym_curve": [float(np.mean(best <= t)) for t in THRESHOLDS],
         }
@@ -148,22 +170,29 @@ def run(args: argparse.Namespace) -> None:
             seconds["medseg-norefine"] = seconds["medseg"] - res.timings.get("refine", 0.0)
             cpu["medseg-norefine"] = np.nan
             maps["medseg"], maps["medseg-norefine"] = res.forward, res.forward_unrefined
+            maps["medseg-votes"] = res.forward_votes
+            maps["medseg-votes-refined"] = _refine_like_medseg(va, fa, vb, fb, res.forward_votes)
+            for name in ("medseg-votes", "medseg-votes-refined"):
+                seconds[name] = cpu[name] = np.nan
             # each sparse solve's own map, to study the choice among them (no extra CPU)
             for i, solve in enumerate(res.solves):
                 maps[f"medseg-solve{i}"] = solve["forward"]
                 seconds[f"medseg-solve{i}"] = cpu[f"medseg-solve{i}"] = np.nan
             if args.save_maps:
+                solves = res.solves
                 (out / "maps").mkdir(exist_ok=True)
                 np.savez_compressed(
                     out / "maps" / f"{set_name}_{a}_{b}.npz",
                     **{name.replace("-", "_"): fwd for name, fwd in maps.items()},
+                    **{f"medseg_solve{i}_unrefined": t["unrefined"] for i, t in enumerate(solves)},
                 )
             extra = {
                 "sparse_gap": res.sparse.gap,
                 "dense_gap": res.dense.gap,
-                "one_to_one": res.one_to_one_fraction,
+                "matched": res.matched_fraction,
                 "solves": [
-                    {k: v for k, v in solve.items() if k != "forward"} for solve in res.solves
+                    {k: v for k, v in solve.items() if k not in ("forward", "unrefined")}
+                    for solve in res.solves
                 ],
                 "timings": res.timings,
             }
@@ -194,9 +223,12 @@ def run(args: argparse.Namespace) -> None:
 def summarise(args: argparse.Namespace) -> None:
     lines = (Path(args.out) / "pairs.jsonl").read_text().splitlines()
     scores = {}  # (set, method) -> {(a, b): latest score}
+    info = {}  # (set, a, b) -> medseg_info of the latest medseg run
     for r in map(json.loads, lines):
         for method, sc in r["scores"].items():
             scores.setdefault((r["set"], method), {})[(r["a"], r["b"])] = sc
+        if r.get("medseg_info"):
+            info[(r["set"], r["a"], r["b"])] = r["medseg_info"]
     if not args.all_pairs:  # compare the methods on the pairs all of them scored
         for set_name in {k[0] for k in scores}:
             keys = [k for k in scores if k[0] == set_name]
@@ -204,7 +236,7 @@ def summarise(args: argparse.Namespace) -> None:
             for k in keys:
                 scores[k] = {pair: sc for pair, sc in scores[k].items() if pair in common}
     header = "set  method  pairs  direct  sym  " + "  ".join(f"<={t}" for t in THRESHOLDS[1:])
-    print(header + "  log-area  s/pair  cpu-s/pair")
+    print(header + "  flips/100  log-area  s/pair  cpu-s/pair")
     for (set_name, method), per_pair in sorted(scores.items()):
         s = list(per_pair.values())
         if not s:
@@ -212,13 +244,35 @@ def summarise(args: argparse.Namespace) -> None:
         curve = np.mean([x["direct_curve"] for x in s], axis=0)
         cpu = np.array([np.nan if x.get("cpu_seconds") is None else x["cpu_seconds"] for x in s])
         cpu = np.nanmean(cpu) if np.isfinite(cpu).any() else np.nan
+        # flipped: the mirrored truth fits better by a clear margin (sym_mean is the better
+        # of the two, so records without mirror_mean count alike)
+        flips = 100 * np.mean([x["sym_mean"] < 0.5 * x["direct_mean"] for x in s])
         print(
             f"{set_name}  {method}  {len(s)}  {np.mean([x['direct_mean'] for x in s]):.4f}  "
             f"{np.mean([x['sym_mean'] for x in s]):.4f}  "
             + "  ".join(f"{c:.3f}" for c in curve[1:])
-            + f"  {np.mean([x['log_area_ratio'] for x in s]):.3f}"
+            + f"  {flips:.0f}  {np.mean([x['log_area_ratio'] for x in s]):.3f}"
             + f"  {np.mean([x['seconds'] for x in s]):.1f}  {cpu:.1f}"
         )
+    for set_name in sorted({k[0] for k in scores}):
+        ms, pf = scores.get((set_name, "medseg"), {}), scores.get((set_name, "pyfmaps"), {})
+        both = sorted(set(ms) & set(pf))
+        if both:
+            t_ms = np.array([ms[p]["seconds"] for p in both])
+            t_pf = np.array([pf[p]["seconds"] for p in both])
+            print(
+                f"{set_name}: medseg / pyfmaps time per pair {t_ms.mean() / t_pf.mean():.2f} "
+                f"(mean of per-pair ratios {np.mean(t_ms / t_pf):.2f}, {len(both)} pairs)"
+            )
+        gaps = [info[(set_name, *p)] for p in ms if (set_name, *p) in info]
+        if gaps:
+            dense = np.array([g["dense_gap"] for g in gaps])
+            sparse = np.array([g["sparse_gap"] for g in gaps])
+            print(
+                f"{set_name}: dense-stage gap mean {dense.mean():.4f} median "
+                f"{np.median(dense):.4f} max {dense.max():.4f}; sparse-stage gap mean "
+                f"{sparse.mean():.4f} max {sparse.max():.4f} ({len(gaps)} pairs)"
+            )
 
 
 def main(argv=None) -> int:

@@ -106,7 +106,7 @@ def _run(args: argparse.Namespace) -> int:
         f"lower bound {s.lower_bound:.4g}, gap {s.gap:.3f}, {s.n_iter} iterations\n"
         f"dense stage: energy {d.energy:.4g}, lower bound {d.lower_bound:.4g}, "
         f"gap {d.gap:.3f}, {d.n_iter} iterations, "
-        f"{100 * result.one_to_one_fraction:.1f}% of vertices matched one-to-one\n"
+        f"{100 * result.matched_fraction:.1f}% of vertices matched\n"
         f"{len(result.solves)} sparse solve(s); {100 * result.mirrored_fraction:.1f}% of "
         "the surface mirrored by the map kept\n"
         f"wrote {args.output}" + (f" and {args.inverse}" if args.inverse else ""),

@@ -23,6 +23,7 @@ from medseg.matching import (
     laplacian_eigenpairs,
     match_surfaces,
     matching_energy,
+    mean_curvature,
     mirrored_fraction,
     mobius_from_triplets,
     mobius_to_canonical,
@@ -30,7 +31,10 @@ from medseg.matching import (
     prepare_surface,
     read_mesh,
     singleton_potentials,
+    solve_many_to_one,
     solve_matching,
+    spectral_refine,
+    spectral_residual,
     to_riemann_sphere,
     triplet_potentials,
     wave_kernel_signature,
@@ -347,6 +351,60 @@ def test_mirrored_fraction_tells_a_mirror_from_a_bend(bent_and_mirrored):
     assert np.isnan(mirrored_fraction(a.vertices, a.faces, b.vertices, b.normals, 0 * same))
 
 
+def test_spectral_residual_ranks_an_isometry_first_and_refinement_on_samples(bent_and_mirrored):
+    a, b, m = bent_and_mirrored
+    mass = vertex_areas(a.vertices, a.faces)
+    same = np.arange(len(a.vertices))  # vertex i of A is vertex i of B
+    rng = np.random.RandomState(0)
+    shuffled = rng.permutation(len(same))
+    truth = spectral_residual(same, a.evecs, mass, b.evecs)
+    assert truth < 0.2 * spectral_residual(shuffled, a.evecs, mass, b.evecs)
+    # blind to a reflection: the mirror image is an isometry too
+    assert spectral_residual(same, a.evecs, mass, m.evecs) < 2 * truth + 1e-3
+    # a map with a quarter of the vertices sent to random vertices: refined on 300 samples
+    # per surface (the last step on all vertices), it comes back to the truth almost
+    # everywhere, as the refinement on every vertex does
+    noisy = np.where(rng.rand(len(same)) < 0.25, rng.randint(0, len(same), len(same)), same)
+    geo = GeodesicSolver(b.vertices, b.faces)
+    rows = np.arange(0, len(same), 5)
+
+    def err(fwd):
+        return np.mean([geo.distance(i)[fwd[i]] for i in rows])
+
+    fast = spectral_refine(
+        noisy,
+        a.evecs,
+        mass,
+        b.evecs,
+        samples_a=a.spectral_samples[:300],
+        samples_b=b.spectral_samples[:300],
+    )
+    full = spectral_refine(noisy, a.evecs, mass, b.evecs)
+    assert err(noisy) > 0.05
+    assert err(fast) < 0.2 * err(noisy) and err(fast) < 1.5 * err(full) + 0.005
+    with pytest.raises(ProblemDefinitionError, match="both"):
+        spectral_refine(noisy, a.evecs, mass, b.evecs, samples_a=a.spectral_samples)
+
+
+def test_mean_curvature_of_a_sphere_and_its_sign():
+    v, f = check_mesh(*_sphere(4))
+    for r in (0.5, 3.0):
+        h = mean_curvature(r * v, f, v / np.linalg.norm(v, axis=1, keepdims=True))
+        np.testing.assert_allclose(np.median(h), 1 / r, rtol=0.02)
+        # inward normals: concave, the sign flips
+        assert np.median(mean_curvature(r * v, f, -v)) < 0
+    # one column per time; heat flow keeps the area-weighted mean and shrinks the spikes
+    # at the icosphere's twelve vertices of valence 5 (14 % above 1 before smoothing)
+    raw = mean_curvature(v, f, v)
+    h2 = mean_curvature(v, f, v, times=(1e-3, 1e-2))
+    assert h2.shape == (len(v), 2)
+    area = vertex_areas(v, f)
+    np.testing.assert_allclose(area @ h2 / area.sum(), area @ raw / area.sum(), rtol=1e-9)
+    spike = np.abs(raw - 1).max()
+    assert spike > 0.1 and np.abs(h2[:, 0] - 1).max() < 0.6 * spike
+    assert np.abs(h2[:, 1] - 1).max() < np.abs(h2[:, 0] - 1).max()
+
+
 def test_choose_solve_rejects_mirrored_maps_even_with_better_descriptors():
     # the mirrored map (solve 1) has the best descriptor agreement: HKS / WKS cannot see a
     # reflection, so the choice must not go by descriptors alone
@@ -412,6 +470,37 @@ def test_solver_finds_optimum_of_small_problem_and_bounds_it():
     assert np.isclose(matching_energy(prob, res.x), res.energy)
 
 
+def _brute_force_many_to_one(prob, k, n):
+    return min(matching_energy(prob, np.array(x)) for x in np.ndindex(*(k + 1,) * n))
+
+
+def test_many_to_one_solver_is_bounded_and_certifies_a_tree():
+    rng = np.random.RandomState(1)
+    n, k = 7, 3
+    cand = rng.randint(0, 4, size=(n, k))  # targets may repeat across points
+    for row in cand:  # but not within a row
+        row[:] = rng.choice(6, size=k, replace=False)
+    unary = rng.uniform(0, 1, size=(n, k))
+    unary[2, 1] = np.inf  # a padded candidate is never taken
+    loopy = np.array([[0, 1, 2], [1, 2, 3], [2, 3, 4], [3, 4, 5], [4, 5, 6], [0, 3, 6]])
+    costs = rng.uniform(0, 2, size=(len(loopy), k, k, k))
+    prob = MatchingProblem(unary, cand, loopy, costs, 6, 3.0, 2.5)
+    res = solve_many_to_one(prob, max_iter=500, tol=1e-9)
+    best = _brute_force_many_to_one(prob, k, n)
+    assert res.lower_bound <= best + 1e-9 <= res.energy + 2e-9
+    assert np.isclose(matching_energy(prob, res.x), res.energy) and res.x[2] != 1
+    hist = res.history["lower_bound"]
+    assert np.all(np.diff(hist) >= -1e-9)  # block-coordinate ascent never lowers the bound
+    # a chain of cliques sharing one point each is a tree: the relaxation is tight, and the
+    # solver certifies the optimum
+    chain = np.array([[0, 1, 2], [2, 3, 4], [4, 5, 6]])
+    tree = MatchingProblem(unary, cand, chain, costs[:3], 6, 3.0, 2.5)
+    res = solve_many_to_one(tree, max_iter=200, tol=1e-9)
+    assert res.success and res.status == 0
+    assert np.isclose(res.energy, _brute_force_many_to_one(tree, k, n))
+    assert res.gap < 1e-8
+
+
 def test_solver_rejects_malformed_problem():
     prob = MatchingProblem(
         np.zeros((3, 2)),
@@ -461,7 +550,7 @@ def test_matcher_recovers_isometric_bend():
     assert len(res.solves) == 2 and res.mirrored_fraction < 0.1
     chosen = [s for s in res.solves if np.array_equal(s["forward"], res.forward)]
     assert len(chosen) >= 1
-    assert chosen[0]["residual"] == min(s["residual"] for s in res.solves if s["mirrored"] <= 0.5)
+    assert chosen[0]["spectral"] == min(s["spectral"] for s in res.solves if s["mirrored"] <= 0.5)
     other = [s for s in res.solves if not np.array_equal(s["forward"], res.forward)]
     err_other = np.array([geo.distance(truth[i])[other[0]["forward"][i]] for i in rows]) / scale
     assert np.mean(err_other) > 3 * np.mean(err)

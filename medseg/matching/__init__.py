@@ -6,7 +6,8 @@ Mesh primitives (areas, normals, the Laplacian, geodesics, sampling) are in
 * ``_mesh_io``, ``_mesh_check``: mesh files in and out; the checks a mesh must pass;
 * ``_descriptors``, ``_conformal``, ``_surface``: curvature, eigenpairs, HKS / WKS and the
   mirror test; conformal flattening and Möbius transforms; what is computed once per surface;
-* ``_potentials``, ``_solver``: the terms of the third-order energy; its minimisation;
+* ``_potentials``, ``_solver``: the terms of the third-order energy; its minimisation
+  (one-to-one by dual decomposition, many-to-one by block-coordinate dual ascent);
 * ``_sparse``, ``_voting``, ``_dense``, ``_spectral``: the sparse stage, the dense candidates
   from Möbius votes, the dense stage, the ZoomOut refinement;
 * ``_matcher``: :func:`match_surfaces`, the choice among sparse solves;
@@ -28,6 +29,7 @@ from medseg.matching._descriptors import (
     gaussian_curvature,
     heat_kernel_signature,
     laplacian_eigenpairs,
+    mean_curvature,
     mirrored_fraction,
     wave_kernel_signature,
 )
@@ -43,8 +45,14 @@ from medseg.matching._potentials import (
     singleton_potentials,
     triplet_potentials,
 )
-from medseg.matching._solver import MatchingProblem, SolveResult, matching_energy, solve_matching
-from medseg.matching._spectral import spectral_refine
+from medseg.matching._solver import (
+    MatchingProblem,
+    SolveResult,
+    matching_energy,
+    solve_many_to_one,
+    solve_matching,
+)
+from medseg.matching._spectral import spectral_refine, spectral_residual
 from medseg.matching._surface import PreparedSurface, prepare_surface
 
 __all__ = [
@@ -62,7 +70,9 @@ __all__ = [
     "prepare_surface",
     "singleton_potentials",
     "solve_matching",
+    "solve_many_to_one",
     "spectral_refine",
+    "spectral_residual",
     "triplet_potentials",
     "CANONICAL_TRIPLET",
     "MESH_SUFFIXES",
@@ -75,6 +85,7 @@ __all__ = [
     "heat_kernel_signature",
     "invert_mobius",
     "laplacian_eigenpairs",
+    "mean_curvature",
     "mobius_from_triplets",
     "mirrored_fraction",
     "mobius_to_canonical",

@@ -31,6 +31,21 @@ and turned correct but noisy maps into front-back mirrors (errors near 0.09). He
   the half-turn's, and the map with the lower descriptor residual was the right one in all
   eight (residual 0.46-2.94 against 0.78-3.23, one pair within 0.5 %);
 * maps that mirror more than half of A (:func:`mirrored_fraction`) are not chosen.
+
+The choice among solves (session 4, 15 FAUST and 15 TOSCA pairs, each solve's refined map
+scored; 29 pairs where one solve was better by more than 0.03). On FAUST the wrong solve is
+still the half-turn (direct error 0.50-0.56, 0.09-0.10 against the mirrored truth): it
+preserves orientation, so the mirror test does not see it. The descriptor residual picked
+the better solve in 25 of the 29 pairs; on FAUST tr_reg_069 -> tr_reg_077 the half-turn's
+residual (5.04) is below even the ground truth's (5.18), so no descriptor criterion can.
+Other criteria on the refined maps: signed mean curvature smoothed at three scales 23,
+the mirrored fraction 27 (with margins of a few percent on FAUST), the log area ratio 25,
+the share of B's vertices hit 25, the sparse energy 24; the spectral residual of the
+refined map (:func:`spectral_residual`, ZoomOut's own energy at 80 eigenpairs: how far
+B's pulled-back eigenfunctions are from spanning A's) 27, failing only on the pair above
+and on TOSCA dog10 -> dog3 where both solves are poor (0.13 / 0.09). On the unrefined
+maps every criterion did worse (spectral residual 20, descriptor residual 22). So each
+solve is refined and the maps that are not mirrored are ranked by their spectral residual.
 """
 
 from __future__ import annotations
@@ -50,7 +65,7 @@ from medseg.matching._dense import _dense_stage
 from medseg.matching._descriptors import mirrored_fraction
 from medseg.matching._solver import SolveResult
 from medseg.matching._sparse import _sparse_stage
-from medseg.matching._spectral import spectral_refine
+from medseg.matching._spectral import spectral_refine, spectral_residual
 from medseg.matching._surface import prepare_surface
 from medseg.matching._voting import _dense_candidates
 
@@ -67,6 +82,9 @@ class SurfaceMatch:
         0-based index of the vertex of B matched to each vertex of A.
     forward_unrefined : (V_A,) int array
         The dense stage's map before the spectral refinement (the paper's pipeline alone).
+    forward_votes : (V_A,) int array
+        Each vertex's best dense candidate (the sparse stage and the Möbius votes, without
+        the dense stage), for ablations.
     inverse : (V_B,) int array
         For each vertex of B, the vertex of A whose image is nearest to it on B.
     sparse_pairs : (P, 2) int array
@@ -75,27 +93,29 @@ class SurfaceMatch:
         Solver outcome of the sparse stage (energy, lower bound, gap, ...).
     dense : SolveResult
         Solver outcome of the dense stage.
-    one_to_one_fraction : float
-        Fraction of vertices of A matched by the dense solver itself (one-to-one); the rest
-        took their best dense candidate.
+    matched_fraction : float
+        Fraction of vertices of A the dense solver matched (did not label "unmatched"); the
+        rest took their best dense candidate.
     mirrored_fraction : float
         Share of A whose image on B is mirrored (:func:`mirrored_fraction`): near 0 for
         an orientation-preserving map, near 1 for a left-right flip.
     solves : list of dict
-        Per sparse solve (``n_solves``): ``forward`` (its (V_A,) map), ``mirrored`` (its
-        map's mirrored fraction), ``residual`` (area-weighted mean descriptor cost of its
-        map, the selection criterion) and ``energy`` (sparse energy).
+        Per sparse solve (``n_solves``): ``forward`` (its (V_A,) map), ``unrefined`` (its
+        dense stage's map), ``mirrored`` (its map's mirrored fraction), ``spectral`` (its
+        map's :func:`spectral_residual`, the selection criterion), ``residual``
+        (area-weighted mean descriptor cost of its map) and ``energy`` (sparse energy).
     timings : dict
         Seconds per step, summed over the solves.
     """
 
     forward: np.ndarray
     forward_unrefined: np.ndarray
+    forward_votes: np.ndarray
     inverse: np.ndarray
     sparse_pairs: np.ndarray
     sparse: SolveResult
     dense: SolveResult
-    one_to_one_fraction: float
+    matched_fraction: float
     mirrored_fraction: float
     solves: list
     timings: dict
@@ -103,7 +123,8 @@ class SurfaceMatch:
 
 def _choose_solve(mirrored, residual, *, max_mirrored: float) -> int:
     """Index of the solve to keep: among the maps whose mirrored fraction is at most
-    ``max_mirrored`` (if none, the least mirrored), the lowest descriptor residual."""
+    ``max_mirrored`` (if none, the least mirrored), the lowest residual (the matcher passes
+    the spectral residual)."""
     mirrored = np.asarray(mirrored, float)
     mirrored = np.where(np.isfinite(mirrored), mirrored, 1.0)  # no triangle image: rejected
     ok = mirrored <= max_mirrored
@@ -166,22 +187,32 @@ def _attempt(
     )
     timings["candidates"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    forward, dense_res, frac = _dense_stage(a, b, modes, dens, opts=opts)
+    forward, dense_res, frac, voted = _dense_stage(a, b, modes, dens, opts=opts)
     timings["dense"] = time.perf_counter() - t0
     unrefined = forward
+    t0 = time.perf_counter()
     if refine:
-        t0 = time.perf_counter()
-        forward = spectral_refine(forward, a.evecs, mass_a, b.evecs)
-        timings["refine"] = time.perf_counter() - t0
+        forward = spectral_refine(
+            forward,
+            a.evecs,
+            mass_a,
+            b.evecs,
+            samples_a=a.spectral_samples,
+            samples_b=b.spectral_samples,
+        )
+    spectral = spectral_residual(forward, a.evecs, mass_a, b.evecs)
+    timings["refine"] = time.perf_counter() - t0
     return {
         "pairs": pairs,
         "targets": targets,
         "sparse": sparse_res,
         "dense": dense_res,
-        "one_to_one": frac,
+        "matched": frac,
         "forward": forward,
         "unrefined": unrefined,
+        "voted": voted,
         "mirrored": mirrored_fraction(a.vertices, a.faces, b.vertices, b.normals, forward),
+        "spectral": spectral,
         # the dense stage's descriptor cost, area-weighted over A
         "residual": float(
             mass_a @ ((a.descriptor - b.descriptor[forward]) ** 2).sum(axis=1) / mass_a.sum()
@@ -212,7 +243,8 @@ def match_surfaces(
     n_neighbours: int = 5,
     delta: float = 0.2,
     max_iter: int = 300,
-    dense_max_iter: int = 30,
+    dense_max_iter: int = 200,
+    dense_one_to_one: bool = False,
     refine: bool = True,
     n_solves: int = 2,
     max_mirrored: float = 0.5,
@@ -259,8 +291,15 @@ def match_surfaces(
         Geodesic neighbours of each sparse point from which the local cliques are formed.
     delta : float
         Chordal distance on the Riemann sphere under which points pair (Möbius term).
-    max_iter, dense_max_iter : int
-        Dual-decomposition iterations of the sparse and dense stages.
+    max_iter : int
+        Subgradient iterations of the sparse stage's dual decomposition.
+    dense_max_iter : int
+        Sweeps of the dense stage's block-coordinate dual ascent (it stops earlier when the
+        duality gap is below 1e-3), or its subgradient iterations with
+        ``dense_one_to_one``.
+    dense_one_to_one : bool
+        Keep the paper's one-to-one constraint in the dense stage (default False: several
+        vertices of A may take one vertex of B; see :mod:`medseg.matching._dense`).
     refine : bool
         Polish the dense map with :func:`spectral_refine` (ZoomOut), an addition to the
         paper's pipeline. Default True.
@@ -269,8 +308,8 @@ def match_surfaces(
         after the first excludes the matches of the earlier ones, so that it settles in
         another basin of the symmetric ambiguity (HKS and WKS cannot tell left from right,
         and on humans hardly front from back). Of the maps that are not mirrored, the one
-        whose descriptors agree best (lowest area-weighted mean of the dense stage's
-        singleton cost) is returned. 1 turns this off; see Notes.
+        closest to an isometry (lowest :func:`spectral_residual`) is returned. 1 turns this
+        off; see Notes.
     max_mirrored : float
         A map whose :func:`mirrored_fraction` exceeds this is a left-right (or front-back)
         flip and is returned only if every solve gave one (then the least mirrored).
@@ -300,14 +339,17 @@ def match_surfaces(
       cost is the squared edge-length distortion (in mean edge lengths) plus
       ``lambda_gauss`` if the image triangle is mirrored against B's normals: a Möbius
       residual per face and label combination would cost ``F (K+1)^3`` alignments.
-    * The one-to-one constraint is kept in the dense stage, but a vertex may stay unmatched
-      (two independent remeshings have no vertex bijection); unmatched vertices then take
-      their best dense candidate, so ``forward`` is complete but not injective.
+    * The dense stage drops the one-to-one constraint by default (two independent
+      remeshings have no vertex bijection, and with it the stage's duality gap stayed near
+      0.45: :mod:`medseg.matching._dense`), and is solved by block-coordinate dual ascent to
+      a certified gap; ``dense_one_to_one=True`` restores it. A vertex may stay unmatched;
+      it then takes its best dense candidate, so ``forward`` is complete.
     * Each Möbius vote is weighted, per vertex, by how well the same map carries the nearby
       matched sparse points (a conformal map fixed by one triplet is accurate only near it).
-    * ``refine=True`` adds a ZoomOut pass; ``forward_unrefined`` keeps the map without it.
+    * ``refine=True`` adds a ZoomOut pass (iterated on 1,000 samples per surface, the last
+      step on every vertex); ``forward_unrefined`` keeps the map without it.
     * ``n_solves=2`` solves the sparse stage a second time, without the first solution's
-      matches, and keeps one of the two maps (not mirrored, best descriptor agreement): on
+      matches, and keeps one of the two maps (not mirrored, lowest spectral residual): on
       bodies with a left-right symmetry the lowest sparse energy is not a reliable guide
       (:mod:`medseg.matching._matcher`, "Mirror flips"). It doubles everything after
       :func:`prepare_surface`.
@@ -346,6 +388,7 @@ def match_surfaces(
         "delta": delta,
         "max_iter": max_iter,
         "dense_max_iter": dense_max_iter,
+        "dense_one_to_one": dense_one_to_one,
         "exclude_radius": exclude_radius,
         "progress": progress,
     }
@@ -385,7 +428,7 @@ def match_surfaces(
     best = attempts[
         _choose_solve(
             [t["mirrored"] for t in attempts],
-            [t["residual"] for t in attempts],
+            [t["spectral"] for t in attempts],
             max_mirrored=max_mirrored,
         )
     ]
@@ -394,16 +437,19 @@ def match_surfaces(
     return SurfaceMatch(
         forward=forward,
         forward_unrefined=best["unrefined"],
+        forward_votes=best["voted"],
         inverse=np.asarray(inv, dtype=np.int64),
         sparse_pairs=best["pairs"],
         sparse=best["sparse"],
         dense=best["dense"],
-        one_to_one_fraction=best["one_to_one"],
+        matched_fraction=best["matched"],
         mirrored_fraction=best["mirrored"],
         solves=[
             {
                 "forward": t["forward"],
+                "unrefined": t["unrefined"],
                 "mirrored": t["mirrored"],
+                "spectral": t["spectral"],
                 "residual": t["residual"],
                 "energy": t["sparse"].energy,
             }

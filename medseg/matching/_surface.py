@@ -19,6 +19,7 @@ from medseg.geometry import (
     GeodesicSolver,
     cotangent_laplacian,
     face_areas,
+    farthest_point_sampling,
     geodesic_farthest_point_sampling,
     vertex_areas,
     vertex_normals,
@@ -115,6 +116,9 @@ class PreparedSurface:
         Laplace-Beltrami eigenpairs of the unit-area surface.
     samples : (S,) int array
         Geodesic farthest-point samples, in picking order.
+    spectral_samples : (S', ) int array
+        Euclidean farthest-point samples (``n_spectral_samples``, from the vertex farthest
+        from the centroid), on which the spectral refinement iterates.
     geodesic : GeodesicSolver
         Heat-method geodesics on ``vertices``; it keeps the distance fields and log maps it
         computed (those of the samples from the start), so that later stages and solves
@@ -130,6 +134,7 @@ class PreparedSurface:
     evals: np.ndarray
     evecs: np.ndarray
     samples: np.ndarray
+    spectral_samples: np.ndarray
     geodesic: GeodesicSolver = field(repr=False)
 
 
@@ -140,6 +145,7 @@ def prepare_surface(
     name: str = "mesh",
     n_samples: int = 120,
     n_eigen: int = 80,
+    n_spectral_samples: int = 1000,
     random_state=None,
 ) -> PreparedSurface:
     """Check a mesh and compute its descriptors, flattening, normals and samples.
@@ -154,6 +160,8 @@ def prepare_surface(
         Farthest-point samples (the sparse points are the first of them).
     n_eigen : int
         Laplace-Beltrami eigenpairs for the HKS.
+    n_spectral_samples : int
+        Vertices on which the spectral refinement iterates (at most V).
     random_state : int, RandomState or None
 
     Returns
@@ -174,4 +182,7 @@ def prepare_surface(
         v, f, n_samples, geodesic=geo, random_state=random_state
     )
     z = conformal_flatten(v, f)
-    return PreparedSurface(v, f, scale, z, normals, descriptor, evals, evecs, samples, geo)
+    spectral = farthest_point_sampling(v, min(n_spectral_samples, len(v)))
+    return PreparedSurface(
+        v, f, scale, z, normals, descriptor, evals, evecs, samples, np.asarray(spectral), geo
+    )
