@@ -243,7 +243,7 @@ def match_surfaces(
     n_neighbours: int = 5,
     delta: float = 0.2,
     max_iter: int = 300,
-    dense_max_iter: int = 200,
+    dense_max_iter: int = 100,
     dense_one_to_one: bool = False,
     refine: bool = True,
     n_solves: int = 2,
@@ -268,7 +268,10 @@ def match_surfaces(
     n_sparse_targets : int
         Farthest-point samples of B they may be matched to.
     n_candidates : int
-        Candidates per sparse point (nearest in HKS space).
+        Candidates per sparse point (nearest in descriptor space). 5 would take 0.87 times
+        the time (125 label combinations per clique instead of 216) and did as well on 10
+        FAUST + 10 TOSCA pairs, but on the small bent surface of the tests the true match
+        was then often not a candidate (mean error 0.12 instead of 0.018).
     n_triplets : int
         Third-order cliques sampled among the sparse points.
     n_align : int

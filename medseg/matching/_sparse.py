@@ -103,7 +103,10 @@ def _sparse_stage(
     )
     if intrinsic and opts["lambda_gauss"]:
         log_a = np.stack([a.geodesic.log_map(i)[src] for i in src])
-        log_b = np.stack([b.geodesic.log_map(j)[tgt] for j in tgt])
+        # log maps at the targets some candidate list names (the others are never read)
+        log_b = np.zeros((len(tgt), len(tgt), 2))
+        for j in np.unique(cand):
+            log_b[j] = b.geodesic.log_map(tgt[j])[tgt]
         costs = costs + opts["lambda_gauss"] * orientation_potentials(
             log_a, log_b, cliques, labels_col
         )

@@ -66,7 +66,9 @@ def _modes(b, votes, weights, *, n_modes, radius, chunk=256):
     """Weighted mean-shift-like modes of each vertex's votes, as B vertices; (V_A, n_modes)
     targets and their vote densities (0 for missing modes)."""
     n, t = votes.shape
-    pos = b.vertices[votes]  # (V_A, T, 3)
+    # single precision: squared distances to 1e-7 of radius^2 are plenty for a kernel
+    pos = b.vertices.astype(np.float32)[votes]  # (V_A, T, 3)
+    inv_2r2 = np.float32(1.0 / (2 * radius**2))
     modes = np.zeros((n, n_modes), dtype=np.int64)
     dens = np.zeros((n, n_modes))
     tree = cKDTree(b.vertices)
@@ -75,8 +77,8 @@ def _modes(b, votes, weights, *, n_modes, radius, chunk=256):
         sq = (p**2).sum(-1)
         # squared distances among each vertex's votes by one batched product
         d2 = np.maximum(sq[:, :, None] + sq[:, None, :] - 2 * np.matmul(p, p.transpose(0, 2, 1)), 0)
-        wv = weights[s : s + chunk]  # (c, T)
-        kern = np.exp(-d2 / (2 * radius**2)) * wv[:, None, :]
+        wv = weights[s : s + chunk].astype(np.float32)  # (c, T)
+        kern = np.exp(-d2 * inv_2r2) * wv[:, None, :]
         density = kern.sum(-1) / wv.sum(axis=1, keepdims=True)  # (c, T)
         alive = np.ones_like(density, dtype=bool)
         for m in range(n_modes):
@@ -86,7 +88,7 @@ def _modes(b, votes, weights, *, n_modes, radius, chunk=256):
             valid = score[rows, j] > 0
             # mode centre: kernel-weighted mean of the votes around the peak
             w = kern[rows, j] * alive
-            centre = (w[..., None] * p).sum(1) / np.maximum(w.sum(1), 1e-300)[:, None]
+            centre = np.matmul(w[:, None, :], p)[:, 0] / np.maximum(w.sum(1), 1e-30)[:, None]
             _, near = tree.query(centre)
             modes[s : s + chunk, m] = np.where(valid, near, modes[s : s + chunk, 0])
             dens[s : s + chunk, m] = np.where(valid, density[rows, j], 0.0)
