@@ -32,8 +32,8 @@ from medseg.matching._solver import MatchingProblem, solve_many_to_one, solve_ma
 def _dense_stage(a, b, modes, dens, *, opts):
     """Dense matching among the (V_A, K) candidate vertices ``modes`` of B, with vote
     densities ``dens`` (0: missing mode). Returns the (V_A,) map, the solver result, the
-    fraction of vertices the solver matched (the rest take their best candidate) and the map
-    of best candidates (the votes alone, for ablations)."""
+    (V_A,) mask of the vertices the solver matched (the rest take their best candidate in
+    the map) and the map of best candidates (the votes alone, for ablations)."""
     n, k = modes.shape
     # duplicate modes (fewer distinct modes than k) are padded with inf cost
     dup = np.zeros_like(modes, dtype=bool)
@@ -84,4 +84,4 @@ def _dense_stage(a, b, modes, dens, *, opts):
     best = np.argmin(unary, axis=1)
     x = np.where(res.x < k, res.x, best)
     forward = modes[np.arange(n), x]
-    return forward, res, float(np.mean(res.x < k)), modes[np.arange(n), best]
+    return forward, res, res.x < k, modes[np.arange(n), best]

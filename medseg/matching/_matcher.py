@@ -60,9 +60,10 @@ from sklearn.utils import check_random_state
 from tqdm.auto import tqdm
 
 from medseg.errors import ProblemDefinitionError
-from medseg.geometry import vertex_areas
+from medseg.geometry import face_areas, vertex_areas
 from medseg.matching._dense import _dense_stage
 from medseg.matching._descriptors import mirrored_fraction
+from medseg.matching._mesh_check import check_mesh
 from medseg.matching._solver import SolveResult
 from medseg.matching._sparse import _sparse_stage
 from medseg.matching._spectral import spectral_refine, spectral_residual
@@ -79,14 +80,20 @@ class SurfaceMatch:
     Attributes
     ----------
     forward : (V_A,) int array
-        0-based index of the vertex of B matched to each vertex of A.
+        0-based index of the vertex of B matched to each vertex of A; -1 where A has no
+        partner (only with ``partial=True``).
+    matched : (V_A,) bool array
+        The vertices of A that have a partner on B: all of them unless ``partial=True``,
+        then those the map back from B comes near.
     forward_unrefined : (V_A,) int array
         The dense stage's map before the spectral refinement (the paper's pipeline alone).
     forward_votes : (V_A,) int array
         Each vertex's best dense candidate (the sparse stage and the Möbius votes, without
         the dense stage), for ablations.
     inverse : (V_B,) int array
-        For each vertex of B, the vertex of A whose image is nearest to it on B.
+        For each vertex of B, the vertex of A whose image is nearest to it on B; with
+        ``partial=True`` the refined map back from B to A, -1 where no image of A comes
+        within three mean edge lengths.
     sparse_pairs : (P, 2) int array
         Vertex pairs (A, B) matched by the sparse stage.
     sparse : SolveResult
@@ -109,6 +116,7 @@ class SurfaceMatch:
     """
 
     forward: np.ndarray
+    matched: np.ndarray
     forward_unrefined: np.ndarray
     forward_votes: np.ndarray
     inverse: np.ndarray
@@ -131,6 +139,43 @@ def _choose_solve(mirrored, residual, *, max_mirrored: float) -> int:
     if not ok.any():
         ok = mirrored == mirrored.min()
     return int(np.argmin(np.where(ok, np.asarray(residual, float), np.inf)))
+
+
+def _mean_edge(surface) -> float:
+    f = surface.faces
+    return float(
+        np.linalg.norm(surface.vertices[f] - surface.vertices[np.roll(f, 1, 1)], axis=-1).mean()
+    )
+
+
+def _partial_cover(a, b, forward, inverse, *, refine):
+    """What has a partner when one surface may be part of the other.
+
+    The map back from B to A starts from ``inverse`` (each vertex of B to the vertex of A
+    whose image is nearest) and is refined as the forward map is. A vertex of A has a
+    partner if the map back comes within three mean edge lengths of it; a vertex of B, if
+    the forward map does. Returns the map back, A's mask and B's mask.
+
+    Why both directions: where B lacks a limb that A has twice (a leg of a body), the
+    forward map sends both of A's legs onto B's one, and every vertex of B is covered;
+    the map back, a function on B, chooses one of A's legs. Descriptors, geodesic
+    consistency with the sparse matches and the dense stage's costs did not tell the lost
+    leg's vertices (their best candidates cost less than those of vertices with a partner
+    on FAUST tr_reg_026 -> tr_reg_050 with a leg of B cut), the map back does.
+    """
+    back = inverse
+    if refine:
+        back = spectral_refine(
+            inverse,
+            b.evecs,
+            vertex_areas(b.vertices, b.faces),
+            a.evecs,
+            samples_a=b.spectral_samples,
+            samples_b=a.spectral_samples,
+        )
+    near_a, _ = cKDTree(a.vertices[back]).query(a.vertices)
+    near_b, _ = cKDTree(b.vertices[forward]).query(b.vertices)
+    return back, near_a <= 3 * _mean_edge(a), near_b <= 3 * _mean_edge(b)
 
 
 def _attempt(
@@ -187,9 +232,11 @@ def _attempt(
     )
     timings["candidates"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    forward, dense_res, frac, voted = _dense_stage(a, b, modes, dens, opts=opts)
+    forward, dense_res, matched, voted = _dense_stage(a, b, modes, dens, opts=opts)
     timings["dense"] = time.perf_counter() - t0
     unrefined = forward
+    # on a partial match only the matched vertices speak for the map
+    fit = matched if opts["partial"] else np.ones(len(forward), dtype=bool)
     t0 = time.perf_counter()
     if refine:
         forward = spectral_refine(
@@ -199,23 +246,32 @@ def _attempt(
             b.evecs,
             samples_a=a.spectral_samples,
             samples_b=b.spectral_samples,
+            fit=fit,
         )
-    spectral = spectral_residual(forward, a.evecs, mass_a, b.evecs)
+    cover = None
+    if opts["partial"]:  # what has a partner, by the map back (see _partial_cover)
+        _, inverse = cKDTree(b.vertices[forward]).query(b.vertices)
+        cover = _partial_cover(a, b, forward, inverse, refine=refine)
+        fit = cover[1]
+    spectral = spectral_residual(forward[fit], a.evecs[fit], mass_a[fit], b.evecs)
     timings["refine"] = time.perf_counter() - t0
     return {
+        "cover": cover,
         "pairs": pairs,
         "targets": targets,
         "sparse": sparse_res,
         "dense": dense_res,
-        "matched": frac,
+        "matched": matched,
         "forward": forward,
         "unrefined": unrefined,
         "voted": voted,
         "mirrored": mirrored_fraction(a.vertices, a.faces, b.vertices, b.normals, forward),
         "spectral": spectral,
-        # the dense stage's descriptor cost, area-weighted over A
+        # the dense stage's descriptor cost, area-weighted over A (what has a partner)
         "residual": float(
-            mass_a @ ((a.descriptor - b.descriptor[forward]) ** 2).sum(axis=1) / mass_a.sum()
+            mass_a[fit]
+            @ ((a.descriptor[fit] - b.descriptor[forward[fit]]) ** 2).sum(axis=1)
+            / mass_a[fit].sum()
         ),
         "timings": timings,
     }
@@ -249,6 +305,7 @@ def match_surfaces(
     n_solves: int = 2,
     max_mirrored: float = 0.5,
     exclude_radius: float = 0.1,
+    partial: bool = False,
     random_state=None,
     progress: bool = False,
 ) -> SurfaceMatch:
@@ -319,6 +376,18 @@ def match_surfaces(
     exclude_radius : float
         In a later solve, each sparse point's candidates exclude the targets within this
         geodesic distance (units of ``sqrt(area)``) of its earlier matches.
+    partial : bool
+        One surface may be only part of the other (a limb cut away, an occluded scan). Both
+        must then be in the same units: they are scaled by the larger one's ``sqrt(area)``
+        (not each to unit area; the descriptors' columns are still standardised on each
+        surface: standardised by the whole one's statistics, the large-time HKS columns,
+        nearly constant on a surface, differed by 8-1,500 times more on true pairs); the
+        dense stage may leave vertices of A unmatched (see :mod:`medseg.matching._dense`),
+        the solves are ranked by their descriptor residual, and the result says what has
+        no partner: a map back from B to A is computed as the forward one is; ``forward``
+        is -1 on the vertices of A that it does not come near (``matched`` False), and
+        ``inverse`` (the map back) on the vertices of B that the forward map does not come
+        near.
     random_state : int, RandomState or None
         Farthest-point seeds and the clique sampling.
     progress : bool
@@ -382,6 +451,7 @@ def match_surfaces(
         raise ProblemDefinitionError(f"n_neighbours must be at least 2, got {n_neighbours}.")
     rng = check_random_state(random_state)
     opts = {
+        "partial": partial,
         "lambda_descriptor": lambda_descriptor,
         "lambda_mobius": lambda_mobius,
         "lambda_gauss": lambda_gauss,
@@ -399,8 +469,18 @@ def match_surfaces(
     bar = tqdm(total=5, desc="matching", disable=not progress, leave=False)
     t0 = time.perf_counter()
     n_s = max(n_align, n_sparse_targets)
-    a = prepare_surface(vertices_a, faces_a, name="surface A", n_samples=n_s, random_state=rng)
-    b = prepare_surface(vertices_b, faces_b, name="surface B", n_samples=n_s, random_state=rng)
+    unit = None
+    if partial:  # one scale for both: the part keeps its size relative to the whole
+        va, fa = check_mesh(vertices_a, faces_a, name="surface A")
+        vb, fb = check_mesh(vertices_b, faces_b, name="surface B")
+        areas = face_areas(va, fa).sum(), face_areas(vb, fb).sum()
+        unit = float(np.sqrt(max(areas)))
+    a = prepare_surface(
+        vertices_a, faces_a, name="surface A", n_samples=n_s, scale=unit, random_state=rng
+    )
+    b = prepare_surface(
+        vertices_b, faces_b, name="surface B", n_samples=n_s, scale=unit, random_state=rng
+    )
     timings["prepare"] = time.perf_counter() - t0
     bar.update(1)
     mass_a = vertex_areas(a.vertices, a.faces)
@@ -435,17 +515,23 @@ def match_surfaces(
             max_mirrored=max_mirrored,
         )
     ]
-    forward = best["forward"]
-    _, inv = cKDTree(b.vertices[forward]).query(b.vertices)
+    forward = best["forward"].copy()
+    _, inverse = cKDTree(b.vertices[forward]).query(b.vertices)
+    matched = np.ones(len(forward), dtype=bool)
+    if partial:
+        inverse, matched, covered_b = best["cover"]
+        forward[~matched] = -1
+        inverse[~covered_b] = -1
     return SurfaceMatch(
         forward=forward,
+        matched=matched,
         forward_unrefined=best["unrefined"],
         forward_votes=best["voted"],
-        inverse=np.asarray(inv, dtype=np.int64),
+        inverse=np.asarray(inverse, dtype=np.int64),
         sparse_pairs=best["pairs"],
         sparse=best["sparse"],
         dense=best["dense"],
-        matched_fraction=best["matched"],
+        matched_fraction=float(np.mean(best["matched"])),
         mirrored_fraction=best["mirrored"],
         solves=[
             {

@@ -15,6 +15,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy.sparse.linalg import splu
 
+from medseg.errors import ProblemDefinitionError
 from medseg.geometry import (
     GeodesicSolver,
     cotangent_laplacian,
@@ -30,7 +31,7 @@ from medseg.matching._descriptors import (
     laplacian_eigenpairs,
     wave_kernel_signature,
 )
-from medseg.matching._mesh_check import check_mesh
+from medseg.matching._mesh_check import _edges, check_mesh
 
 __all__ = ["PreparedSurface", "prepare_surface"]
 
@@ -72,25 +73,48 @@ _WKS_LOWEST = 2.0
 _N_WKS = 100
 
 
-def _standardise(x: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    """Columns to zero mean and unit variance under the vertex-area weights."""
-    w = weights / weights.sum()
-    mean = w @ x
-    std = np.sqrt(w @ (x - mean) ** 2)
-    return (x - mean) / np.maximum(std, 1e-12)
-
-
-def _descriptor(v, f, evals, evecs, n_eigen):
-    """Log HKS (16 times) and log WKS (100 energies), each column standardised, the WKS
-    block weighted so that both blocks carry the same total variance."""
-    area = vertex_areas(v, f)
+def _signature(v, f, evals, evecs, n_eigen):
+    """Log HKS (16 times) and log WKS (100 energies), (V, 116), not standardised."""
     hks = heat_kernel_signature(evals, evecs, times=_HKS_TIMES)
     wks = wave_kernel_signature(
         evals, evecs, n_energies=_N_WKS, energy_range=(_WKS_LOWEST, 4 * np.pi * n_eigen)
     )
-    hks = _standardise(np.log(np.maximum(hks, 1e-12)), area)
-    wks = _standardise(np.log(np.maximum(wks, 1e-12)), area)
-    return np.hstack([hks, wks * np.sqrt(hks.shape[1] / wks.shape[1])])
+    return np.log(np.maximum(np.hstack([hks, wks]), 1e-12))
+
+
+def _descriptor(signature, reference, weights):
+    """Each column of ``signature`` standardised by the area-weighted mean and variance of
+    the same column of ``reference`` (under ``weights``, its vertex areas), the WKS block
+    weighted so that both blocks carry the same total variance."""
+    w = weights / weights.sum()
+    mean = w @ reference
+    std = np.maximum(np.sqrt(w @ (reference - mean) ** 2), 1e-12)
+    out = (signature - mean) / std
+    out[:, len(_HKS_TIMES) :] *= np.sqrt(len(_HKS_TIMES) / _N_WKS)
+    return out
+
+
+def _boundary_vertices(faces: np.ndarray) -> np.ndarray:
+    """Vertices on a boundary (of an edge that only one face has)."""
+    half = _edges(faces)
+    n = int(faces.max()) + 1
+    key = half[:, 0] * n + half[:, 1]
+    alone = ~np.isin(key, half[:, 1] * n + half[:, 0])
+    return np.unique(half[alone])
+
+
+def _samples_away_from(boundary, geo, n_vertices, n_samples) -> np.ndarray:
+    """Geodesic farthest-point samples that count the boundary as already sampled: the
+    first is the vertex farthest from the boundary, and none lies on it. On a surface
+    with part of it cut away, the plain sampling's farthest points are on the cut, where
+    the descriptors of the part are unlike the whole's."""
+    dist = geo.distance_multi(boundary)
+    idx = []
+    for _ in range(min(n_samples, n_vertices - len(boundary))):
+        nxt = int(np.argmax(dist))
+        idx.append(nxt)
+        dist = np.minimum(dist, geo.distance(nxt))
+    return np.asarray(idx, dtype=np.int64)
 
 
 @dataclass
@@ -100,10 +124,11 @@ class PreparedSurface:
     Attributes
     ----------
     vertices : (V, 3) float array
-        Centred and scaled to unit total area (so units do not matter).
+        Centred and scaled to unit total area (so units do not matter), or by the given
+        ``scale``.
     faces : (F, 3) int array, outward oriented.
     scale : float
-        ``sqrt(area)`` of the input, in its units.
+        The unit, in the input's units: ``sqrt(area)`` of the input unless given.
     z : (V,) complex array
         Conformal flattening.
     normals : (V, 3) float array
@@ -115,7 +140,8 @@ class PreparedSurface:
     evals, evecs : (E,), (V, E) float arrays
         Laplace-Beltrami eigenpairs of the unit-area surface.
     samples : (S,) int array
-        Geodesic farthest-point samples, in picking order.
+        Geodesic farthest-point samples, in picking order (on a surface with holes, away
+        from their boundary: the boundary counts as sampled).
     spectral_samples : (S', ) int array
         Euclidean farthest-point samples (``n_spectral_samples``, from the vertex farthest
         from the centroid), on which the spectral refinement iterates.
@@ -146,6 +172,7 @@ def prepare_surface(
     n_samples: int = 120,
     n_eigen: int = 80,
     n_spectral_samples: int = 1000,
+    scale: float | None = None,
     random_state=None,
 ) -> PreparedSurface:
     """Check a mesh and compute its descriptors, flattening, normals and samples.
@@ -162,6 +189,10 @@ def prepare_surface(
         Laplace-Beltrami eigenpairs for the HKS.
     n_spectral_samples : int
         Vertices on which the spectral refinement iterates (at most V).
+    scale : float, optional
+        Length, in the mesh's units, taken as the unit. Default: ``sqrt(area)``, so that
+        the surface has unit area. Two surfaces of which one is part of the other are
+        given the same (the larger one's), so that the part keeps its relative size.
     random_state : int, RandomState or None
 
     Returns
@@ -169,20 +200,39 @@ def prepare_surface(
     PreparedSurface
     """
     v, f = check_mesh(vertices, faces, name=name)
-    scale = float(np.sqrt(face_areas(v, f).sum()))
+    if scale is None:
+        scale = float(np.sqrt(face_areas(v, f).sum()))
+    elif not (np.isfinite(scale) and scale > 0):
+        raise ProblemDefinitionError(f"scale must be a positive length, got {scale}.")
+    scale = float(scale)
     v = (v - v.mean(axis=0)) / scale
     evals, evecs = laplacian_eigenpairs(v, f, n_eigen=n_eigen)
-    descriptor = _descriptor(v, f, evals, evecs, n_eigen)
+    signature = _signature(v, f, evals, evecs, n_eigen)
+    descriptor = _descriptor(signature, signature, vertex_areas(v, f))
     # smoothed normals: normals of the surface after a short implicit heat flow
     lap, mass = cotangent_laplacian(v, f)
     smooth = splu((mass + 1e-3 * lap).tocsc()).solve(mass @ v)
     normals = vertex_normals(smooth, f)
     geo = _CachedGeodesics(v, f)
-    samples = geodesic_farthest_point_sampling(
-        v, f, n_samples, geodesic=geo, random_state=random_state
-    )
+    boundary = _boundary_vertices(f)
+    if len(boundary):
+        samples = _samples_away_from(boundary, geo, len(v), n_samples)
+    else:
+        samples = geodesic_farthest_point_sampling(
+            v, f, n_samples, geodesic=geo, random_state=random_state
+        )
     z = conformal_flatten(v, f)
     spectral = farthest_point_sampling(v, min(n_spectral_samples, len(v)))
     return PreparedSurface(
-        v, f, scale, z, normals, descriptor, evals, evecs, samples, np.asarray(spectral), geo
+        v,
+        f,
+        scale,
+        z,
+        normals,
+        descriptor,
+        evals,
+        evecs,
+        samples,
+        np.asarray(spectral),
+        geo,
     )
