@@ -9,11 +9,11 @@ and never stored: the meshes in the data folder are only read.
 * its five extremities (the first five geodesic farthest-point samples: hands, feet and head
   on FAUST) each carry a region of geodesic radius ``0.3 sqrt(area)``, scaled about the
   centroid of the region's boundary ring (where it attaches) by a factor drawn with
-  ``log s`` uniform in ``+-[log 1.4, log 1.8]`` (limbs stretched or shrunk, lengths and
-  thickness alike);
+  ``log s`` uniform in ``+-[log 1.25, log 1.5]`` (limbs stretched or shrunk, lengths and
+  thickness alike: their areas change by factors of 0.44-0.64 or 1.56-2.25);
 * the torso (geodesic radius ``0.25 sqrt(area)`` around the vertex nearest to the
   centroid) is thickened: its points move away from the region's principal axis by a factor
-  drawn in ``[1.3, 1.6]``;
+  drawn in ``[1.15, 1.35]``;
 * every region's weight falls smoothly (smoothstep) to 0 over ``0.1 sqrt(area)`` at its
   edge: ``x' = x + sum_k w_k(x) (s_k - 1) (x - p_k)`` (``p_k`` the attachment point, or for
   the torso the point's projection on the axis). If a face degenerates, all factors are
@@ -80,10 +80,9 @@ def deform(v: np.ndarray, f: np.ndarray, rng: np.random.RandomState) -> tuple[np
     geo = GeodesicSolver(v, f)
     tips = _extremities(v, f, geo, rng)
     radius, fall = 0.3 * unit, 0.1 * unit
-    log_s = rng.uniform(np.log(1.4), np.log(1.8), N_EXTREMITIES) * rng.choice(
-        [-1, 1], N_EXTREMITIES
-    )
-    torso_s = rng.uniform(1.3, 1.6)
+    log_s = rng.uniform(np.log(1.25), np.log(1.5), N_EXTREMITIES)
+    log_s *= rng.choice([-1, 1], N_EXTREMITIES)
+    torso_s = rng.uniform(1.15, 1.35)
     regions = []
     for tip in tips:
         d = geo.distance(tip)
@@ -113,7 +112,7 @@ def deform(v: np.ndarray, f: np.ndarray, rng: np.random.RandomState) -> tuple[np
             shrink *= 0.8
     else:
         raise MeshError("could not deform this mesh without degenerating a face")
-    return out, {"limb_scales": scales.round(3).tolist(), "torso_scale": round(t_scale, 3)}
+    return out, {"limb_scales": scales.round(3).tolist(), "torso_scale": round(float(t_scale), 3)}
 
 
 def _largest_component(n: int, faces: np.ndarray) -> np.ndarray:

@@ -379,15 +379,14 @@ def match_surfaces(
     partial : bool
         One surface may be only part of the other (a limb cut away, an occluded scan). Both
         must then be in the same units: they are scaled by the larger one's ``sqrt(area)``
-        (not each to unit area; the descriptors' columns are still standardised on each
-        surface: standardised by the whole one's statistics, the large-time HKS columns,
-        nearly constant on a surface, differed by 8-1,500 times more on true pairs); the
-        dense stage may leave vertices of A unmatched (see :mod:`medseg.matching._dense`),
-        the solves are ranked by their descriptor residual, and the result says what has
-        no partner: a map back from B to A is computed as the forward one is; ``forward``
-        is -1 on the vertices of A that it does not come near (``matched`` False), and
-        ``inverse`` (the map back) on the vertices of B that the forward map does not come
-        near.
+        (not each to unit area); samples avoid the boundary of a surface with holes; the
+        refinement fits its functional maps on the vertices the dense stage matched; and
+        the result says what has no partner: a map back from B to A is computed as the
+        forward one is; ``forward`` is -1 on the vertices of A that it does not come near
+        (``matched`` False), and ``inverse`` (the map back) on the vertices of B that the
+        forward map does not come near. Not reliable yet: with 20 % of one FAUST body cut
+        away (``benchmarks/bench_matching_variants.py``) the sparse stage often matches the
+        lost part's points elsewhere and the map goes wrong (mean errors 0.26 over 8 pairs).
     random_state : int, RandomState or None
         Farthest-point seeds and the clique sampling.
     progress : bool
