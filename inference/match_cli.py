@@ -21,7 +21,7 @@ def build_parser() -> argparse.ArgumentParser:
         "Möbius maps, dense matching, spectral refinement. Writes one line per vertex of "
         "A with the 0-based index of its match on B. Both surfaces must be genus-0 "
         "triangle meshes (closed, or with holes); units do not matter (each surface is "
-        "scaled to unit area).",
+        "scaled to unit area) unless --partial.",
         seed=True,
     )
     parser.add_argument("source", help="Surface A (.off, .ply, .obj, .stl, .vtk, .vtp).")
@@ -49,6 +49,15 @@ def build_parser() -> argparse.ArgumentParser:
             "Sparse solves; each after the first excludes the earlier matches, and the "
             "map with the best descriptor agreement that is not a mirror image is kept "
             "(default: 2; 1 is about twice as fast, with more left-right flips)."
+        ),
+    )
+    parser.add_argument(
+        "--partial",
+        action="store_true",
+        help=(
+            "One surface may be only part of the other (both in the same units): vertices "
+            "without a partner get -1 in the maps (default: every vertex is mapped; "
+            "experimental, see the README)."
         ),
     )
     parser.add_argument(
@@ -92,6 +101,7 @@ def _run(args: argparse.Namespace) -> int:
         n_sparse_targets=max(args.n_targets, args.n_sparse),
         n_solves=args.n_solves,
         refine=not args.no_refine,
+        partial=args.partial,
         random_state=args.seed,
         progress=show_progress(args.quiet),
     )
@@ -106,10 +116,17 @@ def _run(args: argparse.Namespace) -> int:
         f"lower bound {s.lower_bound:.4g}, gap {s.gap:.3f}, {s.n_iter} iterations\n"
         f"dense stage: energy {d.energy:.4g}, lower bound {d.lower_bound:.4g}, "
         f"gap {d.gap:.3f}, {d.n_iter} iterations, "
-        f"{100 * result.matched_fraction:.1f}% of vertices matched\n"
+        f"{100 * result.matched_fraction:.1f}% of vertices matched by the dense stage\n"
         f"{len(result.solves)} sparse solve(s); {100 * result.mirrored_fraction:.1f}% of "
         "the surface mirrored by the map kept\n"
-        f"wrote {args.output}" + (f" and {args.inverse}" if args.inverse else ""),
+        + (
+            f"{int((~result.matched).sum())} vertices of A and "
+            f"{int((result.inverse < 0).sum())} of B without a partner\n"
+            if args.partial
+            else ""
+        )
+        + f"wrote {args.output}"
+        + (f" and {args.inverse}" if args.inverse else ""),
         file=sys.stdout,
     )
     return 0

@@ -654,6 +654,11 @@ def test_cli_writes_one_index_per_vertex(tmp_path, capsys):
     assert np.loadtxt(inv, dtype=int).shape == (len(v),)
     printed = capsys.readouterr().out
     assert "lower bound" in printed and "1 sparse solve(s)" in printed
+    # --partial: maps with -1 for what has no partner, and the counts printed
+    assert main(argv + ["--partial"] + opts) == 0
+    fwd = np.loadtxt(out, dtype=int)
+    assert fwd.shape == (len(va),) and fwd.min() >= -1 and fwd.max() < len(v)
+    assert "without a partner" in capsys.readouterr().out
     # refusing to overwrite an input, and a bad mesh: one line, exit code 2, no output
     assert (
         main([str(tmp_path / "a.stl"), str(tmp_path / "b.vtk"), "-o", str(tmp_path / "a.stl")]) == 2
