@@ -270,6 +270,41 @@ def test_potentials_invariant_to_rigid_motion_and_scale(bumpy_pair):
     )
 
 
+def test_mobius_term_is_its_definition_written_out():
+    """Each (triplet, label) pair against the definition with two k-d trees: both clouds sent
+    to the canonical triplet, mutual nearest neighbours within delta, n E / (delta |M|^2)."""
+    from scipy.spatial import cKDTree
+
+    from medseg.matching import mobius_potentials
+
+    rng = np.random.default_rng(4)
+    z_a = rng.normal(size=300) + 1j * rng.normal(size=300)
+    z_b = (
+        1.3 * np.exp(0.4j) * z_a + 0.2 + 0.005 * (rng.normal(size=300) + 1j * rng.normal(size=300))
+    )
+    sa, sb = rng.choice(300, 80, replace=False), rng.choice(300, 90, replace=False)
+    trip = np.stack([rng.choice(300, 3, replace=False) for _ in range(12)])
+    labels = np.stack([[rng.choice(300, 3, replace=False) for _ in range(5)] for _ in trip])
+    labels[:, 0] = trip  # the true labels: a near-perfect alignment
+    labels[0, 1] = [7, 7, 9]  # a repeated vertex costs the cap
+    delta, n = 0.1, 80
+    got = mobius_potentials(z_a, z_b, trip, labels, samples_a=sa, samples_b=sb, delta=delta)
+    expected = np.empty(labels.shape[:2])
+    for t, c in np.ndindex(*labels.shape[:2]):
+        if len(set(labels[t, c])) < 3:
+            expected[t, c] = n
+            continue
+        pa = to_riemann_sphere(z_a[sa], mobius_to_canonical(z_a[trip[t]]))
+        pb = to_riemann_sphere(z_b[sb], mobius_to_canonical(z_b[labels[t, c]]))
+        d_ab, nn_ab = cKDTree(pb).query(pa)
+        nn_ba = cKDTree(pa).query(pb)[1]
+        ok = (nn_ba[nn_ab] == np.arange(len(pa))) & (d_ab < delta)
+        cost = n * d_ab[ok].sum() / (delta * ok.sum() ** 2) if ok.any() else n
+        expected[t, c] = min(cost, n)
+    np.testing.assert_allclose(got, expected, rtol=1e-9, atol=1e-12)
+    assert got[0, 1] == n and np.median(got[:, 0]) < 0.1 * np.median(got[:, 2:])
+
+
 def test_gaussian_map_term_rejects_mirror_flips(bumpy_pair):
     v, f, a, _ = bumpy_pair
     mirrored = v * np.array([-1.0, 1.0, 1.0])

@@ -71,11 +71,14 @@ def singleton_potentials(
 def _mutual_closest(pa: np.ndarray, pb: np.ndarray, delta: float, cap: float) -> np.ndarray:
     """Möbius cost of a batch: (B, n_A, 3) and (B, n_B, 3) unit vectors -> (B,) costs.
 
-    Nearest neighbours by the largest dot product (two batched products and arg-maxima
-    along contiguous rows); the distances of the pairs are then taken exactly."""
+    Nearest neighbours by the largest dot product, in single precision (two batched
+    products and arg-maxima along contiguous rows, twice as fast as in double: the order
+    of two neighbours can change only where their chordal distances differ by less than
+    about 1e-5); the distances of the pairs are then taken exactly."""
     n = min(pa.shape[1], pb.shape[1])
-    nn_ab = np.matmul(pa, pb.transpose(0, 2, 1)).argmax(axis=2)  # (B, n_A)
-    nn_ba = np.matmul(pb, pa.transpose(0, 2, 1)).argmax(axis=2)  # (B, n_B)
+    a32, b32 = pa.astype(np.float32), pb.astype(np.float32)
+    nn_ab = np.matmul(a32, b32.transpose(0, 2, 1)).argmax(axis=2)  # (B, n_A)
+    nn_ba = np.matmul(b32, a32.transpose(0, 2, 1)).argmax(axis=2)  # (B, n_B)
     mutual = np.take_along_axis(nn_ba, nn_ab, axis=1) == np.arange(pa.shape[1])
     dist = np.linalg.norm(pa - np.take_along_axis(pb, nn_ab[..., None], axis=1), axis=-1)
     ok = mutual & (dist < delta)
