@@ -375,6 +375,15 @@ def test_same_seed_same_candidates_whatever_the_jobs(blobs, small_settings):
     np.testing.assert_array_equal(a.positions, b.positions)
     np.testing.assert_array_equal(a.probabilities, b.probabilities)
     assert not np.array_equal(a.probabilities, other.probabilities)
+    # set to one job (as medseg-segment's workers do), no forest uses the fitting's pool
+    two = LandmarkDetector(**kwargs, random_state=3, n_jobs=2).fit(*train)
+    two.n_jobs = 1
+    assert two.region_forest_ is not None
+    for forest in [*two.forests_, two.region_forest_]:
+        forest.predict_proba = None
+    np.testing.assert_array_equal(
+        two.candidates(blobs[8][0], n_candidates=5).probabilities, a.probabilities
+    )
 
 
 def test_candidates_structure_and_min_distance(fitted, blobs):

@@ -213,7 +213,7 @@ def forest_proba(forest, X: np.ndarray) -> np.ndarray:
     """
     if forest.n_jobs not in (None, 1):
         return forest.predict_proba(X)
-    X = np.asarray(X, dtype=np.float32)  # the trees' dtype (no copy when it already is)
+    X = np.ascontiguousarray(X, dtype=np.float32)  # the trees' dtype (no copy if it is)
     total = np.zeros((X.shape[0], forest.n_classes_), dtype=np.float64)
     for tree in forest.estimators_:
         total += tree.predict_proba(X, check_input=False)
@@ -227,7 +227,8 @@ def region_keep(detector, X: np.ndarray) -> np.ndarray:
     if region is None or X.shape[0] == 0:
         return np.ones(X.shape[0], dtype=bool)
     # the region forest sees the local features, the first columns of either stage
-    p = region.predict_proba(X[:, : region.n_features_in_])[:, list(region.classes_).index(1)]
+    region.n_jobs = detector.n_jobs if X.shape[0] >= _THREADED_ROWS else 1
+    p = forest_proba(region, X[:, : region.n_features_in_])[:, list(region.classes_).index(1)]
     keep = p >= float(detector.region_threshold)
     floor = min(X.shape[0], max(64, X.shape[0] // 100))
     if keep.sum() < floor:  # never let the cascade empty the search region

@@ -30,6 +30,7 @@ from threadpoolctl import threadpool_limits
 from medseg.detection._boosting import BoostedTrees
 from medseg.detection._features import FeatureSettings, compute_features, image_array
 from medseg.detection._forest_arrays import load_forests, save_forests
+from medseg.detection._prediction import forest_proba
 from medseg.errors import ModelFileError, NotFittedError, ParameterError
 
 __all__ = [
@@ -197,7 +198,8 @@ class VoxelClassifier(ClassifierMixin, BaseEstimator):
         Of each boosting tree.
     random_state : int, RandomState or None
     n_jobs : int, default 1
-        Threads of the fitting; the model does not depend on it.
+        Threads of the fitting and of a forest's prediction; the model does not depend on
+        it. A loaded classifier predicts on one thread, whatever threads fitted it.
 
     Attributes
     ----------
@@ -266,7 +268,11 @@ class VoxelClassifier(ClassifierMixin, BaseEstimator):
         """(n, K) class probabilities, columns in the order of ``classes_``."""
         if not hasattr(self, "ensemble_"):
             raise NotFittedError("this VoxelClassifier is not fitted yet")
-        return self.ensemble_.predict_proba(np.asarray(X, dtype=np.float32))
+        X = np.asarray(X, dtype=np.float32)
+        if isinstance(self.ensemble_, RandomForestClassifier):
+            self.ensemble_.n_jobs = self.n_jobs  # not the threads stored with the trees
+            return forest_proba(self.ensemble_, X)
+        return self.ensemble_.predict_proba(X)
 
     def save(self, path) -> Path:
         """Write the trees to one ``.npz`` file (node arrays, no pickle)."""
