@@ -217,6 +217,30 @@ def _assignment(u_lin: np.ndarray, cand: np.ndarray, n_targets: int) -> tuple[np
     return labels, float(u_lin[np.arange(n), labels].sum())
 
 
+_MESSAGES = {
+    0: "duality gap below tol",
+    1: "iteration limit reached",
+    2: "the bound stopped rising",
+}
+
+
+def _result(x, cand, k1, energy, lower_bound, n_done, status, hist_e, hist_lb) -> SolveResult:
+    """A solver's result: labels ``x`` (``k1 - 1`` is "no match") and their targets."""
+    n, k = len(x), k1 - 1
+    return SolveResult(
+        x=x,
+        targets=np.where(x < k, cand[np.arange(n), np.minimum(x, k - 1)], -1),
+        energy=float(energy),
+        lower_bound=float(lower_bound),
+        gap=float((energy - lower_bound) / max(abs(energy), 1e-12)),
+        n_iter=n_done,
+        success=status == 0,
+        status=status,
+        message=_MESSAGES[status],
+        history={"energy": np.asarray(hist_e), "lower_bound": np.asarray(hist_lb)},
+    )
+
+
 def solve_matching(
     problem: MatchingProblem,
     *,
@@ -331,21 +355,7 @@ def solve_matching(
         u_lin = u_lin + alpha * g_lin
         u_cl = u_cl + alpha * g_cl
     bar.close()
-    gap = (best_e - best_lb) / max(abs(best_e), 1e-12)
-    k = k1 - 1
-    targets = np.where(best_x < k, cand[np.arange(n), np.minimum(best_x, k - 1)], -1)
-    return SolveResult(
-        x=best_x,
-        targets=targets,
-        energy=float(best_e),
-        lower_bound=float(best_lb),
-        gap=float(gap),
-        n_iter=n_done,
-        success=status == 0,
-        status=status,
-        message="duality gap below tol" if status == 0 else "iteration limit reached",
-        history={"energy": np.asarray(hist_e), "lower_bound": np.asarray(hist_lb)},
-    )
+    return _result(best_x, cand, k1, best_e, best_lb, n_done, status, hist_e, hist_lb)
 
 
 def _colour_cliques(cliques: np.ndarray, n: int) -> np.ndarray:
@@ -534,23 +544,4 @@ def solve_many_to_one(
     for _, tab, lk in blocks:
         rep = tab - lk[0][:, None, None, :] - lk[1][None, :, None, :] - lk[2][None, None, :, :]
         best_lb += float(rep.min(axis=(0, 1, 2)).sum())
-    gap = (best_e - best_lb) / max(abs(best_e), 1e-12)
-    k = k1 - 1
-    targets = np.where(best_x < k, cand[np.arange(n), np.minimum(best_x, k - 1)], -1)
-    messages = {
-        0: "duality gap below tol",
-        1: "iteration limit reached",
-        2: "the bound stopped rising",
-    }
-    return SolveResult(
-        x=best_x,
-        targets=targets,
-        energy=float(best_e),
-        lower_bound=float(best_lb),
-        gap=float(gap),
-        n_iter=n_done,
-        success=status == 0,
-        status=status,
-        message=messages[status],
-        history={"energy": np.asarray(hist_e), "lower_bound": np.asarray(hist_lb)},
-    )
+    return _result(best_x, cand, k1, best_e, best_lb, n_done, status, hist_e, hist_lb)
