@@ -55,6 +55,7 @@ def geodesic_farthest_point_sampling(
     n_samples: int,
     *,
     geodesic: GeodesicSolver | None = None,
+    sampled: ArrayLike | None = None,
     random_state=None,
 ) -> np.ndarray:
     """Farthest-point sampling of mesh vertices in geodesic distance (heat method).
@@ -67,24 +68,31 @@ def geodesic_farthest_point_sampling(
         Number of vertices to pick (at most V).
     geodesic : GeodesicSolver, optional
         Reuse a factorised solver.
+    sampled : int array, optional
+        Vertices counted as sampled already and never picked (a surface's boundary, where
+        the descriptors of a part cut away from a whole are unlike the whole's): the first
+        sample is then the vertex farthest from them, and ``random_state`` is not used.
     random_state : int, RandomState or None
         Picks the first sample.
 
     Returns
     -------
     idx : (n_samples,) int array
-        Vertex indices, in the order they were picked.
+        Vertex indices, in the order they were picked (fewer if ``sampled`` leaves fewer).
     """
-    rng = check_random_state(random_state)
     n = len(vertices)
-    n_samples = int(min(n_samples, n))
     solver = geodesic if geodesic is not None else GeodesicSolver(vertices, faces)
-    idx = [int(rng.randint(n))]
-    dist = solver.distance(idx[0])
-    # restart from the farthest point of a random seed, so the set does not hinge on it
-    idx = [int(np.argmax(dist))]
-    dist = solver.distance(idx[0])
-    for _ in range(1, n_samples):
+    if sampled is not None and len(sampled):
+        n_samples = int(min(n_samples, n - len(sampled)))
+        dist = solver.distance_multi(np.asarray(sampled))
+        idx = []
+    else:
+        n_samples = int(min(n_samples, n))
+        # the farthest point of a random seed, so that the set does not hinge on it
+        seed = int(check_random_state(random_state).randint(n))
+        idx = [int(np.argmax(solver.distance(seed)))]
+        dist = solver.distance(idx[0])
+    for _ in range(len(idx), n_samples):
         nxt = int(np.argmax(dist))
         idx.append(nxt)
         dist = np.minimum(dist, solver.distance(nxt))

@@ -20,7 +20,7 @@ from scipy.sparse.linalg import splu
 
 from medseg.errors import MeshError, ProblemDefinitionError
 from medseg.geometry import cotangent_laplacian, face_areas
-from medseg.matching._mesh_check import _edges
+from medseg.matching._mesh_check import _boundary_half_edges
 
 __all__ = [
     "CANONICAL_TRIPLET",
@@ -55,10 +55,7 @@ def close_holes(vertices: ArrayLike, faces: ArrayLike) -> tuple[np.ndarray, np.n
     """
     v = np.asarray(vertices, float)
     f = np.asarray(faces, np.int64)
-    half = _edges(f)
-    key = half[:, 0] * len(v) + half[:, 1]
-    rev = half[:, 1] * len(v) + half[:, 0]
-    boundary = half[~np.isin(key, rev)]
+    boundary = _boundary_half_edges(f)
     if len(boundary) == 0:
         return v, f
     nxt = dict(zip(boundary[:, 0].tolist(), boundary[:, 1].tolist(), strict=True))

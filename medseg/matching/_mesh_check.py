@@ -40,6 +40,15 @@ def _edges(faces: np.ndarray) -> np.ndarray:
     return faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
 
 
+def _boundary_half_edges(faces: np.ndarray) -> np.ndarray:
+    """The half-edges (B, 2) whose reverse no face has: the boundary, each with its face on
+    the left."""
+    half = _edges(faces)
+    n = int(faces.max()) + 1 if len(faces) else 0
+    key = half[:, 0] * n + half[:, 1]
+    return half[~np.isin(key, half[:, 1] * n + half[:, 0])]
+
+
 def check_mesh(
     vertices: ArrayLike,
     faces: ArrayLike,

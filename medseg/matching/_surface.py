@@ -31,7 +31,7 @@ from medseg.matching._descriptors import (
     laplacian_eigenpairs,
     wave_kernel_signature,
 )
-from medseg.matching._mesh_check import _edges, check_mesh
+from medseg.matching._mesh_check import _boundary_half_edges, check_mesh
 
 __all__ = ["PreparedSurface", "prepare_surface"]
 
@@ -48,21 +48,19 @@ class _CachedGeodesics(GeodesicSolver):
         self._distances: dict[int, np.ndarray] = {}
         self._log_maps: dict[int, np.ndarray] = {}
 
-    def distance(self, source: int) -> np.ndarray:
+    @staticmethod
+    def _kept(cache: dict, source: int, compute) -> np.ndarray:
         key = int(source)
-        if key not in self._distances:
-            field = super().distance(key)
-            field.flags.writeable = False
-            self._distances[key] = field
-        return self._distances[key]
+        if key not in cache:
+            cache[key] = compute(key)
+            cache[key].flags.writeable = False
+        return cache[key]
+
+    def distance(self, source: int) -> np.ndarray:
+        return self._kept(self._distances, source, super().distance)
 
     def log_map(self, source: int) -> np.ndarray:
-        key = int(source)
-        if key not in self._log_maps:
-            field = super().log_map(key)
-            field.flags.writeable = False
-            self._log_maps[key] = field
-        return self._log_maps[key]
+        return self._kept(self._log_maps, source, super().log_map)
 
 
 # diffusion times of the HKS on a unit-area surface
@@ -82,39 +80,16 @@ def _signature(v, f, evals, evecs, n_eigen):
     return np.log(np.maximum(np.hstack([hks, wks]), 1e-12))
 
 
-def _descriptor(signature, reference, weights):
-    """Each column of ``signature`` standardised by the area-weighted mean and variance of
-    the same column of ``reference`` (under ``weights``, its vertex areas), the WKS block
-    weighted so that both blocks carry the same total variance."""
+def _descriptor(signature, weights):
+    """Each column of ``signature`` standardised to zero mean and unit variance under
+    ``weights`` (the vertex areas), the WKS block weighted so that both blocks carry the
+    same total variance."""
     w = weights / weights.sum()
-    mean = w @ reference
-    std = np.maximum(np.sqrt(w @ (reference - mean) ** 2), 1e-12)
+    mean = w @ signature
+    std = np.maximum(np.sqrt(w @ (signature - mean) ** 2), 1e-12)
     out = (signature - mean) / std
     out[:, len(_HKS_TIMES) :] *= np.sqrt(len(_HKS_TIMES) / _N_WKS)
     return out
-
-
-def _boundary_vertices(faces: np.ndarray) -> np.ndarray:
-    """Vertices on a boundary (of an edge that only one face has)."""
-    half = _edges(faces)
-    n = int(faces.max()) + 1
-    key = half[:, 0] * n + half[:, 1]
-    alone = ~np.isin(key, half[:, 1] * n + half[:, 0])
-    return np.unique(half[alone])
-
-
-def _samples_away_from(boundary, geo, n_vertices, n_samples) -> np.ndarray:
-    """Geodesic farthest-point samples that count the boundary as already sampled: the
-    first is the vertex farthest from the boundary, and none lies on it. On a surface
-    with part of it cut away, the plain sampling's farthest points are on the cut, where
-    the descriptors of the part are unlike the whole's."""
-    dist = geo.distance_multi(boundary)
-    idx = []
-    for _ in range(min(n_samples, n_vertices - len(boundary))):
-        nxt = int(np.argmax(dist))
-        idx.append(nxt)
-        dist = np.minimum(dist, geo.distance(nxt))
-    return np.asarray(idx, dtype=np.int64)
 
 
 @dataclass
@@ -208,19 +183,21 @@ def prepare_surface(
     v = (v - v.mean(axis=0)) / scale
     evals, evecs = laplacian_eigenpairs(v, f, n_eigen=n_eigen)
     signature = _signature(v, f, evals, evecs, n_eigen)
-    descriptor = _descriptor(signature, signature, vertex_areas(v, f))
+    descriptor = _descriptor(signature, vertex_areas(v, f))
     # smoothed normals: normals of the surface after a short implicit heat flow
     lap, mass = cotangent_laplacian(v, f)
     smooth = splu((mass + 1e-3 * lap).tocsc()).solve(mass @ v)
     normals = vertex_normals(smooth, f)
     geo = _CachedGeodesics(v, f)
-    boundary = _boundary_vertices(f)
-    if len(boundary):
-        samples = _samples_away_from(boundary, geo, len(v), n_samples)
-    else:
-        samples = geodesic_farthest_point_sampling(
-            v, f, n_samples, geodesic=geo, random_state=random_state
-        )
+    # on a surface with holes the samples keep away from their boundary, counted as sampled
+    samples = geodesic_farthest_point_sampling(
+        v,
+        f,
+        n_samples,
+        geodesic=geo,
+        sampled=np.unique(_boundary_half_edges(f)),
+        random_state=random_state,
+    )
     z = conformal_flatten(v, f)
     spectral = farthest_point_sampling(v, min(n_spectral_samples, len(v)))
     return PreparedSurface(
