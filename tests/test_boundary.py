@@ -269,6 +269,7 @@ def test_a_training_case_never_fuses_atlases_of_its_own_subject(cohort, monkeypa
         shape_weight=(0.3,),
         n_atlases=6,
         auto_context=False,
+        pose_copies=1,
         random_state=0,
     ).fit(
         ShapeFrame.fit(np.stack(landmarks), list(images)),
@@ -279,10 +280,10 @@ def test_a_training_case_never_fuses_atlases_of_its_own_subject(cohort, monkeypa
         np.stack(landmarks),
         groups=groups,
     )
-    assert len(calls) >= 10
-    for i, (sources, use) in enumerate(calls[:10]):  # the training cases, in order
+    assert len(calls) >= 20
+    for k, (sources, use) in enumerate(calls[:20]):  # each training case, then its copy
         assert len(sources) == 6
-        np.testing.assert_array_equal(use, groups[sources] != groups[i])
+        np.testing.assert_array_equal(use, groups[sources] != groups[k // 2])
 
 
 def test_a_stage_of_the_first_format_loads_without_atlases(stage, cohort, tmp_path):
@@ -306,9 +307,11 @@ def test_a_stage_of_the_first_format_loads_without_atlases(stage, cohort, tmp_pa
     header, arrays = load_arrays(old / "stage.npz", what="boundary stage")
     assert header["format_version"] == 1 and not (old / "atlases.npz").exists()
     del header["n_atlases"], header["atlas_patches"], header["params"]["spacing_ratio"]
+    del header["params"]["pose_copies"]
     save_arrays(old / "stage.npz", arrays, header=header)
     loaded = BoundaryStage.load(old)
     assert loaded.atlases_ is None and loaded.n_atlases == 0 and loaded.spacing_ratio == 1.0
+    assert loaded.pose_copies == 0  # trained before posed copies existed
     image, _, points = cohort[10]
     a, b = (s.refine(frame, *template, image, points) for s in (loaded, plain))
     np.testing.assert_array_equal(sitk.GetArrayFromImage(a.label), sitk.GetArrayFromImage(b.label))
@@ -446,3 +449,43 @@ def test_a_stage_without_a_background_cost_in_its_header_loads_with_none(stage, 
     unbiased.foreground_bias_ = 0.0
     a, b = (s.refine(frame, *template, image, points) for s in (old, unbiased))
     np.testing.assert_array_equal(sitk.GetArrayFromImage(a.label), sitk.GetArrayFromImage(b.label))
+
+
+def test_a_posed_training_copy_takes_its_truth_from_the_original_labels(stage, cohort):
+    """The copy's truth in the frame is the original label map carried by the copy's move
+    and the frame's pose in one step: it agrees with the copy's own label map (moved the
+    same way, nearest neighbour) and not with the original seen through the copy's pose."""
+    from medseg.io import random_pose, resample_affine
+    from medseg.segmenter import _boundary
+
+    fitted, frame, template = stage
+    grid = fitted._grid(frame)
+    image, label, points = cohort[3]
+    for seed in range(3):
+        view, truth, _, _ = fitted._posed_case(
+            grid, *template, image, label, points, np.random.RandomState(seed), None
+        )
+        moved, rotation, scale, offset = random_pose(
+            image,
+            points.mean(axis=0),
+            max_angle_deg=_boundary._POSE_ANGLE_DEG,
+            scale_range=_boundary._POSE_SCALES,
+            pad_mm=_boundary._POSE_PAD_MM,
+            random_state=np.random.RandomState(seed),
+        )
+        posed_label = resample_affine(label, scale * rotation, offset, moved, is_label=True)
+        two_steps = sitk.GetArrayFromImage(grid.resample(posed_label, view.pose, is_label=True))
+        unmoved = sitk.GetArrayFromImage(grid.resample(label, view.pose, is_label=True))
+
+        def dice(a, b):
+            return 2 * np.sum((a > 0) & (b > 0)) / (np.sum(a > 0) + np.sum(b > 0))
+
+        def same_label(a, b):  # sub-labels included, over the truth's structure
+            return np.mean(a[a > 0] == b[a > 0])
+
+        # two nearest-neighbour steps lose a little; the copy's own pose alone much more
+        assert dice(truth, two_steps) > 0.88 and same_label(truth, two_steps) > 0.85
+        assert same_label(truth, unmoved) < 0.75
+        # the copy's image shows the structure where its truth is
+        upright = sitk.GetArrayFromImage(view.upright)
+        assert upright[truth > 0].mean() > upright[truth == 0].mean() + 30

@@ -21,7 +21,6 @@ from collections.abc import Sequence
 import numpy as np
 import SimpleITK as sitk
 from joblib import Parallel, delayed
-from scipy.spatial.transform import Rotation
 from sklearn.ensemble import ExtraTreesClassifier, RandomForestClassifier
 from sklearn.utils import check_random_state
 from tqdm.auto import tqdm
@@ -36,7 +35,7 @@ from medseg.detection._prediction import (
 )
 from medseg.detection._sampling import sample_landmark_voxels
 from medseg.errors import CohortError, ImageGeometryError, LandmarkFileError
-from medseg.io import FILLS, padded_grid, resample_affine, voxel_to_physical
+from medseg.io import random_pose, voxel_to_physical
 from medseg.progress import show_progress
 
 __all__ = ["check_training_data", "fit_detector"]
@@ -102,28 +101,20 @@ def _scaled(image: sitk.Image, pts: np.ndarray, factor: float):
 
 
 def _posed(image: sitk.Image, pts: np.ndarray, detector, rng):
-    """A copy of the image and landmarks in a random pose, scale and field of view.
-
-    A rotation by an angle uniform in ``[0, augment_angle_deg]`` about a uniformly random
-    axis and a scale log-uniform in ``augment_scale_range``, about the landmarks' centroid;
-    resampled linearly onto the image's grid padded by ``augment_pad_mm``, filled with
-    zeros, noise like the image's border, or its border median (one at random). The forests
-    then see the anatomy in poses, sizes, interpolations and surroundings the training crops
-    never show, and cannot learn where the crop's edge lies relative to the anatomy.
-    """
-    axis = rng.standard_normal(3)
-    axis /= np.linalg.norm(axis)
-    angle = np.deg2rad(rng.uniform(0.0, float(detector.augment_angle_deg)))
-    low, high = (float(v) for v in detector.augment_scale_range)
-    scale = float(np.exp(rng.uniform(np.log(low), np.log(high))))
-    rotation = Rotation.from_rotvec(angle * axis).as_matrix()
+    """A copy of the image and landmarks in a random pose, scale and field of view
+    (:func:`medseg.io.random_pose` about the landmarks' centroid, with the detector's
+    ``augment_*`` ranges): the forests then cannot learn where the crop's edge lies
+    relative to the anatomy."""
     centre = pts[np.isfinite(pts).all(axis=1)].mean(axis=0)
-    matrix = scale * rotation
-    offset = centre - matrix @ centre
-    fill = FILLS[int(rng.randint(len(FILLS)))]
-    grid = padded_grid(image, float(detector.augment_pad_mm))
-    moved = resample_affine(image, matrix, offset, grid, fill=fill, random_state=rng)
-    return moved, pts @ matrix.T + offset
+    moved, rotation, scale, offset = random_pose(
+        image,
+        centre,
+        max_angle_deg=detector.augment_angle_deg,
+        scale_range=detector.augment_scale_range,
+        pad_mm=detector.augment_pad_mm,
+        random_state=rng,
+    )
+    return moved, scale * pts @ rotation.T + offset
 
 
 # ------------------------------------------------------------------------------ auto-context

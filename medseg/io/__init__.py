@@ -56,6 +56,7 @@ from medseg.io._resample import (
     LABEL_INTERPOLATIONS,
     border_values,
     padded_grid,
+    random_pose,
     resample_affine,
     resample_like,
 )
@@ -76,6 +77,7 @@ __all__ = [
     "border_values",
     "resample_affine",
     "padded_grid",
+    "random_pose",
     "FILLS",
     "LABEL_INTERPOLATIONS",
     "check_image",

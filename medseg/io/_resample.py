@@ -14,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 import SimpleITK as sitk
 from numpy.typing import ArrayLike
+from scipy.spatial.transform import Rotation
 from sklearn.utils import check_random_state
 
 from medseg.errors import ParameterError
@@ -22,6 +23,7 @@ __all__ = [
     "resample_like",
     "resample_affine",
     "padded_grid",
+    "random_pose",
     "border_values",
     "FILLS",
     "LABEL_INTERPOLATIONS",
@@ -179,3 +181,45 @@ def resample_affine(
     noisy = sitk.GetImageFromArray(values)
     noisy.CopyInformation(grid)
     return noisy
+
+
+def random_pose(
+    image: sitk.Image,
+    centre: ArrayLike,
+    *,
+    max_angle_deg: float,
+    scale_range: tuple[float, float],
+    pad_mm: float,
+    random_state=None,
+) -> tuple[sitk.Image, np.ndarray, float, np.ndarray]:
+    """A copy of ``image`` in a random pose, size and field of view (training augmentation).
+
+    A rotation by an angle uniform in ``[0, max_angle_deg]`` about a uniformly random axis
+    and a scale log-uniform in ``scale_range``, about ``centre`` (mm); resampled linearly
+    onto the image's grid padded by ``pad_mm``, filled with zeros, noise like the image's
+    border, or its border median (:data:`FILLS`, one at random). A model trained on such
+    copies sees the anatomy in poses, sizes, interpolations and surroundings the training
+    crops never show.
+
+    Returns
+    -------
+    image : SimpleITK image
+        The copy.
+    rotation : (3, 3) float array
+    scale : float
+    offset : (3,) float array, mm
+        The map of the input's mm onto the copy's: ``y = scale * rotation @ x + offset``.
+    """
+    rng = check_random_state(random_state)
+    axis = rng.standard_normal(3)
+    axis /= np.linalg.norm(axis)
+    angle = np.deg2rad(rng.uniform(0.0, float(max_angle_deg)))
+    low, high = (float(v) for v in scale_range)
+    scale = float(np.exp(rng.uniform(np.log(low), np.log(high))))
+    rotation = Rotation.from_rotvec(angle * axis).as_matrix()
+    centre = np.asarray(centre, dtype=float)
+    offset = centre - scale * rotation @ centre
+    fill = FILLS[int(rng.randint(len(FILLS)))]
+    grid = padded_grid(image, float(pad_mm))
+    moved = resample_affine(image, scale * rotation, offset, grid, fill=fill, random_state=rng)
+    return moved, rotation, scale, offset

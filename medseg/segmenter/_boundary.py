@@ -23,7 +23,9 @@ into the model):
 The classifier learns from training images seen through landmarks jittered by about the
 error of found landmarks, so it meets at training the misplaced templates it meets at test
 time (cross-fitted segmenter outputs would be truer, at the cost of training the whole
-segmenter once per fold). The cut's two weights and its background cost (which undoes the
+segmenter once per fold), and from copies of them in a random pose, size and field of view
+(``pose_copies``), so that an image resampled before it reaches the stage is no stranger
+to it. The cut's two weights and its background cost (which undoes the
 shrinking of a classifier and a boundary term that side with background where in doubt) are
 chosen on training cases the classifier did not see, by the Dice they give.
 """
@@ -47,7 +49,8 @@ from medseg.detection import (
 )
 from medseg.errors import ModelFileError, ParameterError
 from medseg.frame import ShapeFrame
-from medseg.io import check_format, load_arrays, save_arrays
+from medseg.geometry import Similarity
+from medseg.io import check_format, load_arrays, random_pose, save_arrays
 from medseg.mrf import grid_edges, potts_expansion
 from medseg.segmenter._atlases import FrameAtlases
 from medseg.segmenter._frame_view import FrameView, frame_view, template_values, to_input
@@ -58,6 +61,10 @@ _MIN_PROBABILITY = 1e-3  # floor of the classifier's probabilities in -log p
 #: validation cases the quality score needs (a model of fewer training cases has none)
 MIN_REFERENCE_CASES = 5
 _MIN_SPREAD = 0.02  # floor of the signals' spread: cases that happen to agree closely
+# the posed training copies (``pose_copies``): any rotation, the evaluation's scales and padding
+_POSE_ANGLE_DEG = 180.0
+_POSE_SCALES = (0.8, 1.25)
+_POSE_PAD_MM = 15.0
 
 
 def _wrong_side(distances: np.ndarray) -> np.ndarray:
@@ -184,7 +191,23 @@ class BoundaryStage:
     n_iterations : int, default 100
         Iterations of its boosting.
     rows_per_case : int, default 4000
-        Voxels of each training case the classifier learns from (drawn from the band).
+        Voxels of each training case the classifier learns from (drawn from the band, in
+        equal parts from the case and its posed copies).
+    pose_copies : int, default 1
+        Copies of each training image in a random pose, size and field of view
+        (:func:`medseg.io.random_pose`: any rotation, scale 0.8-1.25, 15 mm of padding)
+        that the classifiers also learn from. The frame undoes the pose, but not what
+        resampling does to the image: a test image that was resampled once already (a
+        reformatted scan, a perturbation study) reaches the frame smoother, and its padding
+        may lie where a training crop had tissue. Refitted on a 138-case model's training
+        cases, 61 held-out cases of 40 subjects, landmarks held fixed (found on the acquired
+        image, carried by the perturbation), paired against no copies: under the
+        evaluation's random similarity +0.0013 Dice (s.e. 0.0007), the same transform
+        without padding +0.0022 (0.0007), acquired +0.0008 (0.0007); 22 % more fitting
+        time. The stage still loses about 0.006 more than the warped template there, as
+        under a half-voxel shift alone (0.008), where the reference itself, resampled
+        label-linearly, also changes: the perturbation study's references are uncertain
+        at that level (label-linear and nearest-neighbour copies agree at Dice 0.965).
     smoothness : tuple of float
         Candidate weights of the contrast-sensitive Potts term.
     shape_weight : tuple of float
@@ -243,6 +266,7 @@ class BoundaryStage:
         n_estimators: int = 15,
         n_iterations: int = 100,
         rows_per_case: int = 4000,
+        pose_copies: int = 1,
         smoothness: tuple = (0.25, 0.5, 1.0, 2.0),
         shape_weight: tuple = (0.0, 0.1, 0.3, 1.0),
         foreground_bias: tuple = (0.0, 0.2, 0.4, 0.6),
@@ -260,6 +284,7 @@ class BoundaryStage:
         self.n_estimators = n_estimators
         self.n_iterations = n_iterations
         self.rows_per_case = rows_per_case
+        self.pose_copies = pose_copies
         self.smoothness = smoothness
         self.shape_weight = shape_weight
         self.foreground_bias = foreground_bias
@@ -297,6 +322,8 @@ class BoundaryStage:
             raise ParameterError("`validation_fraction` must be in (0, 1)")
         if int(self.n_atlases) < 0:
             raise ParameterError(f"`n_atlases` must be >= 0; got {self.n_atlases}")
+        if int(self.pose_copies) < 0:
+            raise ParameterError(f"`pose_copies` must be >= 0; got {self.pose_copies}")
         rng = check_random_state(self.random_state)
         n = len(images)
         groups = np.arange(n) if groups is None else np.asarray(groups)
@@ -321,9 +348,12 @@ class BoundaryStage:
             use = None
             if self.atlases_ is not None:  # never the case's own subject
                 use = groups[self.atlases_.sources] != groups[i]
-            case = self._training_case(*view, image, label_map, np.asarray(points), rng, use)
+            points = np.asarray(points, dtype=float)
+            case = [self._training_case(*view, image, label_map, points, rng, use)]
+            for _ in range(int(self.pose_copies)):
+                case.append(self._posed_case(*view, image, label_map, points, rng, use))
             cases.append(case)
-        self.values_ = cases[0][0].values
+        self.values_ = cases[0][0][0].values
         self.context_ = None
         if self.auto_context:
             cases = self._with_context(cases, rng)
@@ -350,8 +380,10 @@ class BoundaryStage:
         for part, other in ((halves[0], halves[1]), (halves[1], halves[0])):
             first = self._classifier(rng).fit(*self._rows(cases, part, rng))
             for i in other:
-                view, truth, nodes, features = cases[i]
-                extended[i] = (view, truth, nodes, self._extend(first, view, nodes, features))
+                extended[i] = [
+                    (view, truth, nodes, self._extend(first, view, nodes, features))
+                    for view, truth, nodes, features in cases[i]
+                ]
         self.context_ = self._classifier(rng).fit(*self._rows(cases, range(len(cases)), rng))
         return extended
 
@@ -361,9 +393,22 @@ class BoundaryStage:
         return np.hstack([features, context])
 
     def _training_case(
-        self, frame, template_labels, template_landmarks, image, label_map, points, rng, use
+        self,
+        frame,
+        template_labels,
+        template_landmarks,
+        image,
+        label_map,
+        points,
+        rng,
+        use,
+        moved: Similarity | None = None,
     ):
-        """One training image through jittered landmarks: its view, truth and features."""
+        """One training image through jittered landmarks: its view, truth and features.
+
+        ``moved`` maps ``label_map``'s mm onto ``image``'s when the image is a posed copy
+        (:meth:`_posed_case`): the truth then comes from the original labels in one step.
+        """
         noise = rng.normal(scale=self.jitter_mm, size=points.shape)
         noise += rng.normal(scale=self.jitter_mm, size=3)
         view = frame_view(
@@ -376,10 +421,37 @@ class BoundaryStage:
             use=use,
             reach_mm=self._reach(frame),
         )
-        truth = sitk.GetArrayFromImage(frame.resample(label_map, view.pose, is_label=True))
+        pose = view.pose if moved is None else view.pose.compose(moved)
+        truth = sitk.GetArrayFromImage(frame.resample(label_map, pose, is_label=True))
         truth = np.where(np.isin(truth, view.values), truth, 0)
         nodes = self._nodes(view)
         return view, truth, nodes, self._features(view, nodes)
+
+    def _posed_case(
+        self, frame, template_labels, template_landmarks, image, label_map, points, rng, use
+    ):
+        """:meth:`_training_case` of a copy of the image in a random pose, size and field of
+        view (:func:`medseg.io.random_pose`)."""
+        image, rotation, scale, offset = random_pose(
+            image,
+            points.mean(axis=0),
+            max_angle_deg=_POSE_ANGLE_DEG,
+            scale_range=_POSE_SCALES,
+            pad_mm=_POSE_PAD_MM,
+            random_state=rng,
+        )
+        moved = Similarity(rotation=rotation, scale=scale, translation=offset)
+        return self._training_case(
+            frame,
+            template_labels,
+            template_landmarks,
+            image,
+            label_map,
+            moved(points),
+            rng,
+            use,
+            moved=moved,
+        )
 
     @staticmethod
     def _features(view: FrameView, nodes: np.ndarray) -> np.ndarray:
@@ -408,12 +480,14 @@ class BoundaryStage:
         )
 
     def _rows(self, cases, which, rng):
+        """Rows of the cases ``which``: ``rows_per_case`` each, shared by its images."""
         X, y = [], []
         for i in which:
-            _, truth, nodes, features = cases[i]
-            take = rng.permutation(len(features))[: self.rows_per_case]
-            X.append(features[take])
-            y.append(truth[nodes][take])
+            share = max(1, int(self.rows_per_case) // len(cases[i]))
+            for _, truth, nodes, features in cases[i]:
+                take = rng.permutation(len(features))[:share]
+                X.append(features[take])
+                y.append(truth[nodes][take])
         return np.vstack(X), np.concatenate(y)
 
     def _select(self, cases, held, classifier) -> tuple[list, dict]:
@@ -422,7 +496,7 @@ class BoundaryStage:
         Coordinate-wise: every pair of weights at the first background cost, every cost at
         the best pair, then every pair again at the best cost.
         """
-        held = [(cases[i], self._probabilities(classifier, cases[i][3])) for i in held]
+        held = [(cases[i][0], self._probabilities(classifier, cases[i][0][3])) for i in held]
         scores: dict[tuple, float] = {}
         signals: dict[tuple, list] = {}
 
@@ -529,6 +603,7 @@ class BoundaryStage:
         "jitter_mm",
         "n_estimators",
         "rows_per_case",
+        "pose_copies",
         "validation_fraction",
         "auto_context",
     )
@@ -586,7 +661,8 @@ class BoundaryStage:
         source = str(folder / "stage.npz")
         check_format(header, format=cls.FORMAT, version=cls.FORMAT_VERSION, source=source)
         try:
-            stage = cls(**{name: header["params"][name] for name in cls._PARAMS})
+            params = {"pose_copies": 0} | header["params"]  # stages before copies: none
+            stage = cls(**{name: params[name] for name in cls._PARAMS})
             stage.values_ = tuple(int(v) for v in header["values"])
             stage.smoothness_ = float(header["smoothness"])
             stage.shape_weight_ = float(header["shape_weight"])
