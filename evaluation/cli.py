@@ -62,6 +62,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--jobs", type=int, default=1, help="Folds in parallel. Default: 1.")
     parser.add_argument(
+        "--keep-models",
+        action="store_true",
+        help="Keep each fold's fitted segmenter in OUTPUT/models and reuse it when the run is "
+        "resumed or extended (same cases, settings, seed and medseg source), instead of "
+        "fitting it again.",
+    )
+    parser.add_argument(
         "--scheduler",
         default=None,
         help="Address of a running Dask scheduler (tcp://host:port). Default: local.",
@@ -111,6 +118,7 @@ def _run(args: argparse.Namespace) -> int:
         seed=args.seed,
         n_jobs=args.jobs,
         scheduler=args.scheduler,
+        keep_models=args.keep_models,
         perturbation=conditions,
         max_subjects=args.max_subjects,
         progress=show_progress(args.quiet),

@@ -78,6 +78,7 @@ def run_evaluation(
     asm_params: dict | None = None,
     multi_atlas_params: dict | None = None,
     report: bool = True,
+    keep_models: bool = False,
     progress: bool = False,
 ) -> Path:
     """Cross-validate the method and its baselines by subject and write the report.
@@ -123,6 +124,11 @@ def run_evaluation(
         Extra constructor arguments of the segmenter / the ASM / the multi-atlas baseline.
     report : bool, default True
         Write the report after the runs.
+    keep_models : bool, default False
+        Keep each fold's fitted segmenter in ``models/`` of the report folder (about 10 MB
+        each on the hippocampus) and, when the run is resumed or extended with more
+        conditions or methods, load it instead of fitting again (only if it was fitted on
+        the same cases, with the same parameters, seed and source code).
     progress : bool, default False
         Progress bars (folds).
 
@@ -172,6 +178,7 @@ def run_evaluation(
         perturbation=perturbation,
         n_jobs=n_jobs,
         scheduler=scheduler,
+        keep_models=keep_models,
         progress=progress,
     )
     if report:

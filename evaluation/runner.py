@@ -97,6 +97,7 @@ def run_folds(
     n_jobs: int = 1,
     scheduler: str | None = None,
     save_predictions: bool = True,
+    keep_models: bool = False,
     progress: bool = False,
 ) -> Path:
     """Run (or resume) the cross-validation; one CSV row per (method, case, condition).
@@ -126,6 +127,10 @@ def run_folds(
     scheduler : str, optional
         Address of a running Dask scheduler (``"tcp://host:port"``); folds are submitted to
         it (``n_jobs`` is then ignored). The cohort's files must be readable by the workers.
+    keep_models : bool
+        Keep each fold's fitted segmenter in ``models/`` and reuse it when the run is
+        resumed or extended (:func:`medseg.evaluation.fold._fitted`): the same training
+        cases, parameters, seed and source code, or it is fitted again.
     save_predictions : bool
         Write each unperturbed prediction to ``predictions/<method>/<case>.nii.gz`` (on the
         test image's grid); the report draws its overlays from them. With a Dask cluster,
@@ -182,6 +187,7 @@ def run_folds(
                     conditions=conditions,
                     todo=todo,
                     predictions_dir=str(folder / "predictions") if save_predictions else None,
+                    models_dir=str(folder / "models") if keep_models else None,
                 )
             )
     bar = tqdm(

@@ -689,3 +689,69 @@ def test_an_oracle_added_on_resume_sees_the_reference_and_segments_nothing_again
     assert len(oracle) == len(cohort) - 2
     for row in oracle:  # the ball through the true landmarks is the true ball
         assert row["dice"] > 0.95 and math.isnan(row["landmark_error_mm"])
+
+
+class SavedThreshold(ThresholdMethod):
+    """The fake method with the persistence the fold's model cache looks for."""
+
+    def save(self, folder):
+        folder = Path(folder)
+        folder.mkdir(parents=True)
+        record = {"landmarks": self.landmarks_.tolist(), "threshold": self.threshold_}
+        (folder / "model.json").write_text(json.dumps(record))
+        return folder
+
+    @classmethod
+    def load(cls, folder):
+        record = json.loads((Path(folder) / "model.json").read_text())
+        model = cls()
+        model.landmarks_ = np.asarray(record["landmarks"])
+        model.threshold_ = float(record["threshold"])
+        return model
+
+
+def test_kept_models_are_reused_only_when_they_were_fitted_alike(tmp_path, monkeypatch):
+    from medseg.evaluation import fold as fold_module
+
+    cohort = tiny_cohort(n_subjects=6, per_subject=1)
+    log = tmp_path / "fits.log"
+
+    def specs(jitter=0.5):
+        return (MethodSpec(SavedThreshold, {"log": str(log), "jitter": jitter}, {"t": {}}),)
+
+    def fits():
+        n = len(log.read_text().splitlines()) if log.exists() else 0
+        log.unlink(missing_ok=True)
+        return n
+
+    study = {"folds": "loo", "seed": 3, "keep_models": True}
+    run = tmp_path / "run"
+    run_folds(cohort, specs(), run, perturbation=(), **study)
+    assert fits() == 6
+    kept = sorted(p.name for p in (run / "models").iterdir())
+    assert kept == [f"fold{k}_t" for k in range(6)]
+    recorded = json.loads((run / "models" / "fold2_t" / "fit.json").read_text())
+
+    # extended by a condition: every fold loads its model, and scores as a fresh fit does
+    run_folds(cohort, specs(), run, perturbation=("rot45",), **study)
+    assert fits() == 0
+    fresh = run_folds(cohort, specs(), tmp_path / "fresh", folds="loo", seed=3,
+                      perturbation=("rot45",))  # fmt: skip
+    assert fits() == 6
+    extended, reference = _by_key(read_results(run / "cases.csv")), _by_key(read_results(fresh))
+    assert sorted(extended) == sorted(reference)
+    for key, row in extended.items():
+        assert row["dice"] == reference[key]["dice"]
+        if key[3] == "rot45" and key[1] == 2:
+            assert row["fit_seconds"] == recorded["fit_seconds"]
+
+    # a model fitted by other code, or whose record is torn, is fitted again and replaced
+    (run / "models" / "fold4_t" / "fit.json").write_text("{")
+    run_folds(cohort, specs(), run, perturbation=("rot45", "pad_zeros"), **study)
+    assert fits() == 1
+    monkeypatch.setattr(fold_module, "_code_digest", lambda: "other source")
+    run_folds(cohort, specs(), run, perturbation=("rot45", "pad_zeros", "scale0.9"), **study)
+    assert fits() == 6
+    assert json.loads((run / "models" / "fold0_t" / "fit.json").read_text())["code"] == (
+        "other source"
+    )
