@@ -785,3 +785,41 @@ def test_label_linear_resampling_follows_a_shape_closer_than_nearest_neighbour()
                                       sitk.GetArrayViewFromImage(label))  # fmt: skip
     with pytest.raises(ParameterError, match="label_interpolation"):
         mio.resample_like(label, label, is_label=True, label_interpolation="cubic")
+
+
+def test_random_pose_moves_the_content_as_it_says_and_stays_within_its_ranges():
+    """A blob at ``p`` lies at ``scale * rotation @ p + offset`` in the copy; the angle and
+    scale stay within their ranges; the grid grows by the padding; one seed, one copy."""
+    size, spacing = 30, (1.0, 1.2, 0.9)
+    z, y, x = np.mgrid[:size, :size, :size].astype(float)
+    blob = np.exp(-((x - 18) ** 2 + (y - 11) ** 2 + (z - 14) ** 2) / 4.0) * 100
+    image = sitk.GetImageFromArray(blob.astype(np.float32))
+    image.SetSpacing(spacing)
+    image.SetOrigin((5.0, -3.0, 2.0))
+    peak = np.asarray(image.TransformContinuousIndexToPhysicalPoint((18.0, 11.0, 14.0)))
+    centre = peak + np.array([2.0, -1.0, 3.0])
+    angles, scales = [], []
+    for seed in range(6):
+        moved, rotation, scale, offset = mio.random_pose(
+            image, centre, max_angle_deg=90.0, scale_range=(0.8, 1.25), pad_mm=6.0,
+            random_state=seed,
+        )  # fmt: skip
+        np.testing.assert_allclose(rotation @ rotation.T, np.eye(3), atol=1e-12)
+        angles.append(np.degrees(Rotation.from_matrix(rotation).magnitude()))
+        scales.append(scale)
+        expected = scale * rotation @ peak + offset
+        np.testing.assert_allclose(scale * rotation @ centre + offset, centre, atol=1e-9)
+        arr = sitk.GetArrayFromImage(moved)
+        found = moved.TransformIndexToPhysicalPoint(
+            [int(v) for v in np.unravel_index(np.argmax(arr), arr.shape)[::-1]]
+        )
+        assert np.linalg.norm(np.asarray(found) - expected) < 1.3  # within a voxel
+        assert np.all(np.asarray(moved.GetSize()) > np.asarray(image.GetSize()))
+        again = mio.random_pose(
+            image, centre, max_angle_deg=90.0, scale_range=(0.8, 1.25), pad_mm=6.0,
+            random_state=seed,
+        )  # fmt: skip
+        np.testing.assert_array_equal(again[1], rotation)
+        assert again[2] == scale
+    assert max(angles) <= 90.0 + 1e-9 and 0.8 <= min(scales) and max(scales) <= 1.25
+    assert len(set(np.round(scales, 6))) == 6  # the draws differ from seed to seed
