@@ -122,12 +122,12 @@ def main(argv=None) -> int:
     for i in test:
         case = cohort[i]
         acquired, labels = case.load_image(), label_values(case.load_label(), LABELS)
-        found = model.segment(acquired).landmarks
+        first = model.segment(acquired)  # the acquired condition's, and the fixed landmarks
         for condition in conditions:
             image, truth, carried, _, _ = perturb_condition(
-                condition, acquired, labels, found, random_state=args.seed + i
+                condition, acquired, labels, first.landmarks, random_state=args.seed + i
             )
-            seg = model.segment(image)
+            seg = first if condition == UNPERTURBED else model.segment(image)
             row = {
                 "case": case.case_id,
                 "condition": condition,
