@@ -18,6 +18,7 @@ from medseg.errors import ModelFileError, ParameterError
 from medseg.frame import ShapeFrame
 from medseg.io import label_values, resample_like
 from medseg.reconstruction import warp_labels
+from medseg.segmenter import _boundary
 from medseg.segmenter._boundary import BoundaryStage
 from medseg.segmenter._frame_view import signed_distance
 
@@ -104,6 +105,35 @@ def test_a_template_shifted_by_two_voxels_comes_back_within_one(stage, cohort):
     d = np.abs(signed_distance(t, (1.0, 1.0, 1.0)))
     border = sitk.GetArrayFromImage(sitk.LabelContour(refined > 0)) > 0
     assert d[border].mean() < 1.0
+
+
+def test_the_landmarks_follow_the_cut_back_onto_the_structure(stage, cohort):
+    # what the second round starts from: landmarks 2 mm off, moved with the boundary from
+    # the template warped onto them to the first round's cut, land near the true ones
+    fitted, frame, template = stage
+    image, _, landmarks = cohort[10]
+    shifted = landmarks + np.array([2.0, 0.0, 0.0])
+    view, labels, _ = fitted._round(fitted._grid(frame), *template, image, shifted)
+    moved = _boundary._follow(view, labels, shifted)
+    error = np.linalg.norm(moved - landmarks, axis=1)
+    assert error.mean() < 1.0 and error.max() < 1.6  # mm, from 2 (0.51 / 1.01 measured)
+
+
+def test_a_round_that_makes_the_case_look_less_usual_is_not_kept(stage, cohort, monkeypatch):
+    fitted, frame, template = stage
+    image, _, landmarks = cohort[10]
+    single = copy.copy(fitted)
+    single.rounds = 1
+    first = single.refine(frame, *template, image, landmarks)
+    # a second round started 6 mm off: its cut disagrees with its template, so it goes
+    monkeypatch.setattr(_boundary, "_follow", lambda view, labels, points: points + 6.0)
+    both = fitted.refine(frame, *template, image, landmarks)
+    np.testing.assert_array_equal(
+        sitk.GetArrayFromImage(both.label), sitk.GetArrayFromImage(first.label)
+    )
+    assert both.score == first.score  # the quality is always the first round's
+    with pytest.raises(ParameterError, match="rounds"):
+        BoundaryStage(rounds=0).fit(frame, *template, [image], [cohort[0][1]], landmarks[None])
 
 
 def test_sub_labels_come_back_in_an_oblique_anisotropic_geometry(stage, cohort):
@@ -299,7 +329,7 @@ def test_a_stage_of_the_first_format_loads_without_atlases(stage, cohort, tmp_pa
     # nothing of either (a forest without atlases on that grid is still written as format 1)
     plain = BoundaryStage(
         n_estimators=2, rows_per_case=300, smoothness=(1.0,), shape_weight=(0.3,),
-        foreground_bias=(0.0,), n_atlases=0, spacing_ratio=1.0, random_state=0,
+        foreground_bias=(0.0,), n_atlases=0, spacing_ratio=1.0, rounds=1, random_state=0,
     )  # fmt: skip
     images, labels, landmarks = zip(*cohort[:10], strict=True)
     plain.fit(frame, *template, list(images), list(labels), np.stack(landmarks))
@@ -307,11 +337,12 @@ def test_a_stage_of_the_first_format_loads_without_atlases(stage, cohort, tmp_pa
     header, arrays = load_arrays(old / "stage.npz", what="boundary stage")
     assert header["format_version"] == 1 and not (old / "atlases.npz").exists()
     del header["n_atlases"], header["atlas_patches"], header["params"]["spacing_ratio"]
-    del header["params"]["pose_copies"]
+    del header["params"]["pose_copies"], header["params"]["rounds"]
     save_arrays(old / "stage.npz", arrays, header=header)
     loaded = BoundaryStage.load(old)
     assert loaded.atlases_ is None and loaded.n_atlases == 0 and loaded.spacing_ratio == 1.0
     assert loaded.pose_copies == 0  # trained before posed copies existed
+    assert loaded.rounds == 1  # and before a second round: it refines as it did
     image, _, points = cohort[10]
     a, b = (s.refine(frame, *template, image, points) for s in (loaded, plain))
     np.testing.assert_array_equal(sitk.GetArrayFromImage(a.label), sitk.GetArrayFromImage(b.label))

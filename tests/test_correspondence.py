@@ -13,6 +13,7 @@ from scipy.spatial.transform import Rotation
 from medseg.correspondence import (
     CorrespondenceResult,
     cohort_landmarks,
+    follow_boundary,
     label_surface,
     landmarks_from_labels,
     plot_correspondences,
@@ -225,6 +226,29 @@ def test_landmarks_follow_a_similarity_transform_of_the_label_map(pair_result, s
     assert np.median(err) < 1.5
     assert err.max() < 0.5 * spacing
     assert not res2.failed.any()
+
+
+@pytest.mark.parametrize("shift", [(1.3, 0.7, -2.2), (3.0, -2.0, 0.5)])
+def test_landmarks_follow_a_nearby_boundary_that_moved(pair_result, shift):
+    # the bean's surface and the same bean moved by a few mm (rasterised anew, so the two
+    # meshes share no vertices): landmarks of the first follow to where the motion takes
+    # them on the second, without a global alignment (the drift alone), to within the
+    # drift's sliding on a 1 mm grid; projected straight onto the moved surface they are
+    # off by more than twice as much
+    from medseg.correspondence._surface import _closest_on_surface, _polydata
+
+    _, res = pair_result
+    shift = np.asarray(shift)
+    moved = _rasterise(_grid((48, 48, 48), (1.0, 1.0, 1.0)), lambda p: _bean()(p - shift))
+    target = label_surface(moved)
+    landmarks, truth = res.landmarks[0], res.landmarks[0] + shift
+    followed = follow_boundary(landmarks, res.surfaces[0], target)
+    err = np.linalg.norm(followed - truth, axis=1)
+    assert np.median(err) < 1.0 and err.max() < 1.6  # mm (0.65-0.76 and 1.25-1.36 measured)
+    projected, _ = _closest_on_surface(_polydata(*target), landmarks)
+    assert np.median(err) < 0.5 * np.median(np.linalg.norm(projected - truth, axis=1))
+    _, off_surface = _closest_on_surface(_polydata(*target), followed)
+    assert off_surface.max() < 1e-6  # on the triangles
 
 
 def test_mirror_images_need_allow_reflection():

@@ -18,9 +18,9 @@ case's surface; cases whose residual exceeds a threshold are flagged as failed.
 
 The package holds one idea per module: ``_surface`` (label map -> mesh in mm, and closest
 points on a mesh), ``_transfer`` (the registration chain carrying landmarks onto one surface,
-and the settings it shares with the cohort entry), ``_cohort`` (the cohort-level entries and
-:class:`CorrespondenceResult`) and ``_plot`` (the figure). The point-set registration itself
-is :mod:`medseg.geometry`.
+its last step alone from a surface onto a nearby one, and the settings they share with the
+cohort entry), ``_cohort`` (the cohort-level entries and :class:`CorrespondenceResult`) and
+``_plot`` (the figure). The point-set registration itself is :mod:`medseg.geometry`.
 
 References
 ----------
@@ -40,7 +40,7 @@ from medseg.correspondence._cohort import (
 )
 from medseg.correspondence._plot import plot_correspondences
 from medseg.correspondence._surface import label_surface
-from medseg.correspondence._transfer import transfer_landmarks
+from medseg.correspondence._transfer import follow_boundary, transfer_landmarks
 
 __all__ = [
     "CorrespondenceResult",
@@ -48,5 +48,6 @@ __all__ = [
     "landmarks_from_labels",
     "cohort_landmarks",
     "transfer_landmarks",
+    "follow_boundary",
     "plot_correspondences",
 ]

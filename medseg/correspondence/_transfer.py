@@ -95,30 +95,88 @@ def _transfer(
         def norm(p):
             return (p - centre) / radius
 
-        tgt_n = norm(tgt_sample)
-        src_n = norm(sim(ref_sample))
         if options.affine:
-            mat, vec, _ = icp_affine(src_n, tgt_n)
+            mat, vec, _ = icp_affine(norm(sim(ref_sample)), norm(tgt_sample))
         else:
             mat, vec = np.eye(3), np.zeros(3)
 
         def pre(p):
             return norm(sim(p)) @ mat.T + vec
 
-        cpd = cpd_nonrigid(
-            pre(ref_sample),
-            tgt_n,
-            beta=options.beta,
-            lam=options.lam,
-            w=options.outlier_weight,
-            rank=options.rank,
+        warped = _drift(
+            pre(ref_sample), norm(tgt_sample), [pre(ref_landmarks), pre(ref_vertices)], options
         )
-        warped_vertices = cpd.warp(pre(ref_vertices)) * radius + centre
-        warped_landmarks = cpd.warp(pre(ref_landmarks)) * radius + centre
+        warped_landmarks, warped_vertices = (w * radius + centre for w in warped)
         mesh = _polydata(tgt_vertices, tgt_faces)
         landmarks, _ = _closest_on_surface(mesh, warped_landmarks)
         _, dist = _closest_on_surface(mesh, warped_vertices)
     return landmarks, float(dist.mean()), sim.matrix()
+
+
+def _drift(
+    source: np.ndarray, target: np.ndarray, carried: list[np.ndarray], options: _TransferOptions
+) -> list[np.ndarray]:
+    """Coherent point drift of ``source`` onto ``target``, in the frame where the target is
+    centred with unit RMS radius (the one ``beta`` and ``lam`` are set for); returns each
+    array of ``carried`` moved by its displacement field."""
+    cpd = cpd_nonrigid(
+        source,
+        target,
+        beta=options.beta,
+        lam=options.lam,
+        w=options.outlier_weight,
+        rank=options.rank,
+    )
+    return [cpd.warp(p) for p in carried]
+
+
+def follow_boundary(
+    landmarks: np.ndarray,
+    source: tuple[np.ndarray, np.ndarray],
+    target: tuple[np.ndarray, np.ndarray],
+    *,
+    n_points: int = 300,
+) -> np.ndarray:
+    """Landmarks on one surface, carried onto a nearby second surface.
+
+    For a surface that has moved a little (a segmentation refined at its boundary): no
+    global alignment, only the coherent point drift of :func:`transfer_landmarks` from a
+    farthest-point sample of ``source`` onto one of ``target``, with its defaults, and the
+    moved landmarks projected onto ``target``'s triangles. The drift is smooth and slides a
+    little: on a 26 mm bean rasterised on a 1 mm grid and moved by 2-4 mm, the landmarks
+    land 0.6-0.8 mm (median) from where the motion takes them, where projecting them
+    straight onto the moved surface leaves 1.7-3.4 mm; grown by 5 %, about 1 mm (the
+    chain's affine step did not help at this sampling).
+
+    Parameters
+    ----------
+    landmarks : (N, 3) float array, mm
+        On or near ``source``.
+    source, target : ((V, 3) float array, (F, 3) int array)
+        Triangle meshes in mm (e.g. :func:`label_surface`), in the same frame.
+    n_points : int, default 300
+        Points of each surface in the drift.
+
+    Returns
+    -------
+    (N, 3) float array, mm
+    """
+    with threadpool_limits(limits=1):
+        samples = []
+        for vertices, _ in (source, target):
+            vertices = np.asarray(vertices, dtype=float)
+            samples.append(
+                vertices[farthest_point_sampling(vertices, min(n_points, len(vertices)))]
+            )
+        centre = samples[1].mean(0)
+        radius = float(np.sqrt(((samples[1] - centre) ** 2).sum(1).mean()))
+        source_n, target_n, points_n = (
+            (p - centre) / radius for p in (*samples, np.asarray(landmarks, dtype=float))
+        )
+        (moved,) = _drift(source_n, target_n, [points_n], _DEFAULT)
+        moved = moved * radius + centre
+        projected, _ = _closest_on_surface(_polydata(*target), moved)
+    return projected
 
 
 def transfer_landmarks(

@@ -17,7 +17,10 @@ into the model):
 4. a multi-label graph cut (alpha-expansion, :func:`medseg.mrf.potts_expansion`; exact
    s-t min cut for one label) minimises ``-log p + shape term`` with contrast-sensitive
    Potts terms between neighbours;
-5. the labels go back to the input's exact grid through their signed distances
+5. the landmarks follow the boundary from the warped template to the cut (coherent point
+   drift between the two surfaces) and steps 1-4 run once more from them (``rounds``), so
+   that the template and its band sit where the image, not the detectors, put the boundary;
+6. the labels go back to the input's exact grid through their signed distances
    (linearly interpolated), not by nearest neighbour.
 
 The classifier learns from training images seen through landmarks jittered by about the
@@ -41,13 +44,14 @@ import SimpleITK as sitk
 from scipy import ndimage
 from sklearn.utils import check_random_state
 
+from medseg.correspondence import follow_boundary, label_surface
 from medseg.detection import (
     CONTRAST_RING_MM,
     VoxelClassifier,
     context_features,
     voxel_features,
 )
-from medseg.errors import ModelFileError, ParameterError
+from medseg.errors import LabelError, ModelFileError, ParameterError
 from medseg.frame import ShapeFrame
 from medseg.geometry import Similarity
 from medseg.io import check_format, load_arrays, random_pose, save_arrays
@@ -146,6 +150,21 @@ def _signals(view: FrameView, probabilities: np.ndarray, nodes: np.ndarray, cut:
     return 1.0 - agreement, 1.0 - dice
 
 
+def _follow(view: FrameView, labels: np.ndarray, landmarks: np.ndarray) -> np.ndarray | None:
+    """``landmarks`` (input mm) moved with the boundary from the view's warped template to
+    the cut ``labels`` (both on the frame's grid), in input mm; None when either has no
+    boundary to follow."""
+    surfaces = []
+    for mask in (view.shape > 0, labels > 0):
+        image = sitk.GetImageFromArray(mask.astype(np.uint8))
+        image.CopyInformation(view.upright)
+        try:
+            surfaces.append(label_surface(image, labels=1, keep_largest=True))
+        except LabelError:
+            return None
+    return view.pose.inverse(follow_boundary(view.pose(landmarks), *surfaces))
+
+
 @dataclass
 class Refined:
     """What :meth:`BoundaryStage.refine` returns.
@@ -208,6 +227,22 @@ class BoundaryStage:
         under a half-voxel shift alone (0.008), where the reference itself, resampled
         label-linearly, also changes: the perturbation study's references are uncertain
         at that level (label-linear and nearest-neighbour copies agree at Dice 0.965).
+    rounds : int, default 2
+        Passes of :meth:`refine`. After each but the last, the landmarks follow the
+        boundary from the warped template to the cut (coherent point drift between the two
+        surfaces, :func:`medseg.correspondence.follow_boundary`) and the stage runs again
+        from them, so the template, its band and its shape term sit where the image put the
+        boundary and no longer where the detectors put the landmarks. A round is kept only
+        if it leaves a structure and its signals (:attr:`Refined.score`) are not more
+        unusual than the round before; the quality score is the first round's, the one
+        that judges the found landmarks (and when the stage has too few validation cases
+        for a score, every round is kept). Hippocampus, 5-fold by subject, 199 cases, the
+        fold models of a cross-validation with their stages run for 2 rounds instead of 1:
+        Dice 0.8800 -> 0.8829 (+0.0029, s.e. 0.0007, better on 117 cases, worse on 81;
+        every fold gained), per label 0.857 / 0.835 -> 0.860 / 0.840; the stage takes about
+        twice as long (0.26 s of it to follow the boundary). Without the guard a case that
+        had failed (Dice 0.19) came out empty; 3 rounds were no better than 2 (61 held-out
+        cases). 1 is the single pass.
     smoothness : tuple of float
         Candidate weights of the contrast-sensitive Potts term.
     shape_weight : tuple of float
@@ -267,6 +302,7 @@ class BoundaryStage:
         n_iterations: int = 100,
         rows_per_case: int = 4000,
         pose_copies: int = 1,
+        rounds: int = 2,
         smoothness: tuple = (0.25, 0.5, 1.0, 2.0),
         shape_weight: tuple = (0.0, 0.1, 0.3, 1.0),
         foreground_bias: tuple = (0.0, 0.2, 0.4, 0.6),
@@ -285,6 +321,7 @@ class BoundaryStage:
         self.n_iterations = n_iterations
         self.rows_per_case = rows_per_case
         self.pose_copies = pose_copies
+        self.rounds = rounds
         self.smoothness = smoothness
         self.shape_weight = shape_weight
         self.foreground_bias = foreground_bias
@@ -324,6 +361,8 @@ class BoundaryStage:
             raise ParameterError(f"`n_atlases` must be >= 0; got {self.n_atlases}")
         if int(self.pose_copies) < 0:
             raise ParameterError(f"`pose_copies` must be >= 0; got {self.pose_copies}")
+        if int(self.rounds) < 1:
+            raise ParameterError(f"`rounds` must be >= 1; got {self.rounds}")
         rng = check_random_state(self.random_state)
         n = len(images)
         groups = np.arange(n) if groups is None else np.asarray(groups)
@@ -551,6 +590,28 @@ class BoundaryStage:
         """The refined label map of ``image`` (its grid, uint8, the label values), and how
         far image and shape agreed (:class:`Refined`)."""
         frame = self._grid(frame)
+        view, labels, signals = self._round(
+            frame, template_labels, template_landmarks, image, landmarks
+        )
+        first = signals
+        for _ in range(1, int(self.rounds)):
+            moved = _follow(view, labels, landmarks)
+            if moved is None:
+                break
+            again = self._round(frame, template_labels, template_landmarks, image, moved)
+            if not again[1].any() or self._score(*again[2]) > self._score(*signals):
+                break
+            view, labels, signals = again
+            landmarks = moved
+        return Refined(
+            label=to_input(view, labels, image),
+            disagreement=first[0],
+            change=first[1],
+            score=self._score(*first),
+        )
+
+    def _round(self, frame, template_labels, template_landmarks, image, landmarks):
+        """One pass: the view from ``landmarks``, the cut's labels on its grid, its signals."""
         view = frame_view(
             frame,
             template_labels,
@@ -574,13 +635,7 @@ class BoundaryStage:
             shape_weight=self.shape_weight_,
             foreground_bias=self.foreground_bias_,
         )
-        disagreement, change = _signals(view, probabilities, nodes, labels)
-        return Refined(
-            label=to_input(view, labels, image),
-            disagreement=disagreement,
-            change=change,
-            score=self._score(disagreement, change),
-        )
+        return view, labels, _signals(view, probabilities, nodes, labels)
 
     def _score(self, disagreement: float, change: float) -> float:
         """NaN with fewer than :data:`MIN_REFERENCE_CASES` validation cases to compare with."""
@@ -604,6 +659,7 @@ class BoundaryStage:
         "n_estimators",
         "rows_per_case",
         "pose_copies",
+        "rounds",
         "validation_fraction",
         "auto_context",
     )
@@ -661,7 +717,8 @@ class BoundaryStage:
         source = str(folder / "stage.npz")
         check_format(header, format=cls.FORMAT, version=cls.FORMAT_VERSION, source=source)
         try:
-            params = {"pose_copies": 0} | header["params"]  # stages before copies: none
+            # stages before copies had none; before rounds, one pass
+            params = {"pose_copies": 0, "rounds": 1} | header["params"]
             stage = cls(**{name: params[name] for name in cls._PARAMS})
             stage.values_ = tuple(int(v) for v in header["values"])
             stage.smoothness_ = float(header["smoothness"])
