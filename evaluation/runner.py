@@ -26,7 +26,7 @@ from medseg.evaluation.fold import FoldTask, run_fold
 from medseg.evaluation.folds import check_cohort, fold_seed
 from medseg.evaluation.methods import MethodSpec
 from medseg.evaluation.perturbation import LABEL_INTERPOLATION, check_conditions
-from medseg.evaluation.results import ResultsFile, result_key
+from medseg.evaluation.results import ResultsFile, read_results, result_key
 from medseg.io import atomic_write
 
 __all__ = ["run_folds", "DASK_CONNECT_TIMEOUT"]
@@ -58,7 +58,9 @@ def _method_config(specs: Sequence[MethodSpec]) -> dict:
 
 
 def _check_run_config(folder: Path, config: dict) -> None:
-    """Refuse to resume a folder written with other settings; methods may be added."""
+    """Refuse to resume a folder written with other settings; methods may be added, and a
+    method without rows yet (an extension stopped before any of its folds ended) may be
+    given other settings."""
     path = folder / "run.json"
     previous = None
     if path.is_file():
@@ -69,10 +71,11 @@ def _check_run_config(folder: Path, config: dict) -> None:
     if previous is not None:
         changed = [k for k in config if k != "methods" and previous.get(k) != config[k]]
         old_methods = previous.get("methods", {})
+        scored = {row["method"] for row in read_results(folder / "cases.csv")}
         changed += [
             f"method {name!r}"
             for name, value in config["methods"].items()
-            if name in old_methods and old_methods[name] != value
+            if name in old_methods and old_methods[name] != value and name in scored
         ]
         if changed:
             raise MedsegError(

@@ -339,6 +339,17 @@ def test_resume_recomputes_only_missing_rows(tmp_path):
     other_params = (MethodSpec(ThresholdMethod, {"jitter": 0.1}, {"thresh": {}}),)
     with pytest.raises(MedsegError, match="method 'thresh'"):
         run_folds(cohort, other_params, part, folds="loo", seed=3)
+    # ... unless the method has no rows yet (an extension stopped before its first fold
+    # ended): its recorded settings are then replaced, not a reason to refuse
+    fresh = tmp_path / "fresh"
+    fresh.mkdir()
+    (fresh / "run.json").write_text((part / "run.json").read_text())
+    run_folds(cohort, other_params, fresh, folds="loo", seed=3)
+    assert json.loads((fresh / "run.json").read_text())["methods"]["thresh"]["params"] == (
+        "[('jitter', 0.1)]"
+    )
+    with pytest.raises(MedsegError, match="method 'thresh'"):
+        run_folds(cohort, _specs(str(log)), fresh, folds="loo", seed=3)  # now it has rows
     # a folder scored against references resampled otherwise (before 2026-12-04: nearest
     # neighbour, a run.json without the key) is not resumed
     config = json.loads((part / "run.json").read_text())
