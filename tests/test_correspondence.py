@@ -19,11 +19,27 @@ from medseg.correspondence import (
     plot_correspondences,
 )
 from medseg.errors import CohortError, LabelError, MeshError
-from medseg.geometry import cpd_nonrigid
+from medseg.geometry import cpd_nonrigid, farthest_point_sampling
 from medseg.io import voxel_to_physical
 
 # the beans are small: fewer registration points keep the tests fast
 FAST = {"n_registration_points": 500}
+
+
+def test_farthest_point_sampling_takes_the_point_farthest_from_those_taken():
+    """Each sample is the point whose distance to the samples before it is largest (the
+    first such point on ties, which a grid makes common), from the default start: the
+    point farthest from the centroid."""
+    rng = np.random.default_rng(3)
+    clouds = [rng.normal(size=(400, 3)) * [30.0, 10.0, 5.0], np.argwhere(np.ones((6, 7, 5)))]
+    for points in clouds:
+        points = np.asarray(points, dtype=float)
+        taken = farthest_point_sampling(points, 60)
+        assert taken[0] == np.argmax(((points - points.mean(0)) ** 2).sum(1))
+        for k in range(1, len(taken)):
+            gaps = cKDTree(points[taken[:k]]).query(points)[0]
+            assert taken[k] == np.argmax(gaps), k
+        assert len(set(taken.tolist())) == 60
 
 
 def _grid(size_xyz, spacing, direction=None, centre=(0.0, 0.0, 0.0)) -> sitk.Image:
@@ -91,6 +107,13 @@ def pair_result():
     return (a, b), landmarks_from_labels(
         [a, b], n_landmarks=20, reference=0, random_state=0, **FAST
     )
+
+
+@pytest.fixture(scope="module")
+def pair_result_defaults(pair_result):
+    """:func:`pair_result` with the transfer's default registration points."""
+    (a, b), _ = pair_result
+    return (a, b), landmarks_from_labels([a, b], n_landmarks=20, reference=0, random_state=0)
 
 
 # ---------------------------------------------------------------- surfaces
@@ -210,16 +233,20 @@ def test_transfer_follows_a_known_stretch(pair_result):
     scale=st.floats(0.8, 1.3),
     shift=st.tuples(*[st.floats(-30.0, 30.0)] * 3),
 )
-def test_landmarks_follow_a_similarity_transform_of_the_label_map(pair_result, seed, scale, shift):
-    (a, b), res = pair_result
+def test_landmarks_follow_a_similarity_transform_of_the_label_map(
+    pair_result_defaults, seed, scale, shift
+):
+    (a, b), res = pair_result_defaults
     rot = Rotation.random(random_state=seed).as_matrix()
     moved = _similarity_resample(b, rot, scale, shift)
-    res2 = landmarks_from_labels([a, moved], n_landmarks=20, reference=0, random_state=0, **FAST)
+    res2 = landmarks_from_labels([a, moved], n_landmarks=20, reference=0, random_state=0)
     np.testing.assert_allclose(res2.landmarks[0], res.landmarks[0])
     err = np.linalg.norm(res2.landmarks[1] - _apply(res.landmarks[1], rot, scale, shift), axis=1)
     # Nearest-neighbour resampling moves the boundary by up to a voxel (1 mm here) and the
     # transfer slides along it: over random poses the median error is 0.4-1.2 mm (it was
-    # asserted under 1 mm, which failed about once in four random examples). A landmark
+    # asserted under 1 mm, which failed about once in four random examples). With the
+    # default registration points, not FAST's 500: with those the drift slid 1.7 mm
+    # (median) on one rotation (seed 21866, scale 1.19; 0.69 with the defaults). A landmark
     # swapped with a neighbour is off by the landmark spacing (6.5 mm times the scale), so
     # the maximum is held to half of it, as in the stretch test above.
     spacing = scale * np.median(cKDTree(res.landmarks[1]).query(res.landmarks[1], k=2)[0][:, 1])

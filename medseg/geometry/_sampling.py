@@ -39,13 +39,28 @@ def farthest_point_sampling(
             start = int(np.argmax(((points - points.mean(0)) ** 2).sum(1)))
         else:
             start = int(check_random_state(random_state).randint(len(points)))
+    # Squared distances summed coordinate by coordinate in preallocated buffers: the same
+    # sums as ``((points - p) ** 2).sum(1)`` to the bit (so the same samples), about ten
+    # times faster than reducing over the short last axis with temporaries.
+    columns = [np.ascontiguousarray(points[:, k]) for k in range(3)]
+    dist, step, term = (np.empty(len(points)) for _ in range(3))
+
+    def squared_to(i: int, out: np.ndarray) -> None:
+        for k, column in enumerate(columns):
+            target = out if k == 0 else term
+            np.subtract(column, column[i], out=target)
+            np.square(target, out=target)
+            if k:
+                out += term
+
     idx = np.empty(n, dtype=np.intp)
     idx[0] = start
-    dist = ((points - points[start]) ** 2).sum(1)
+    squared_to(start, dist)
     for k in range(1, n):
         nxt = int(np.argmax(dist))
         idx[k] = nxt
-        dist = np.minimum(dist, ((points - points[nxt]) ** 2).sum(1))
+        squared_to(nxt, step)
+        np.minimum(dist, step, out=dist)
     return idx
 
 
