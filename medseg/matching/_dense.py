@@ -29,20 +29,34 @@ from medseg.matching._potentials import singleton_potentials
 from medseg.matching._solver import MatchingProblem, solve_many_to_one, solve_matching
 
 
-def _dense_stage(a, b, modes, dens, *, opts):
-    """Dense matching among the (V_A, K) candidate vertices ``modes`` of B, with vote
-    densities ``dens`` (0: missing mode). Returns the (V_A,) map, the solver result, the
-    (V_A,) mask of the vertices the solver matched (the rest take their best candidate in
-    the map) and the map of best candidates (the votes alone, for ablations)."""
-    n, k = modes.shape
-    # duplicate modes (fewer distinct modes than k) are padded with inf cost
+def _dense_unary(a, b, modes, dens, *, opts) -> np.ndarray:
+    """(V_A, K) singleton costs of the candidates ``modes`` (vertices of B) with vote
+    densities ``dens`` (0: missing mode): the vote density as a negative log plus the
+    descriptor cost; inf on duplicate and missing modes."""
+    k = modes.shape[1]
     dup = np.zeros_like(modes, dtype=bool)
     for m in range(1, k):
         dup[:, m] = (modes[:, :m] == modes[:, m : m + 1]).any(axis=1) | (dens[:, m] <= 0)
     desc = singleton_potentials(a.descriptor, b.descriptor, modes)
     desc = desc / max(np.median(desc), 1e-12)
     unary = -np.log(np.maximum(dens, 1e-6)) + opts["lambda_descriptor"] * desc
-    unary = np.where(dup, np.inf, unary)
+    return np.where(dup, np.inf, unary)
+
+
+def _best_candidates(a, b, modes, dens, *, opts) -> np.ndarray:
+    """The (V_A,) map of each vertex's cheapest candidate (:func:`_dense_unary`): the
+    sparse stage and the Möbius votes without the dense stage."""
+    best = np.argmin(_dense_unary(a, b, modes, dens, opts=opts), axis=1)
+    return modes[np.arange(len(modes)), best]
+
+
+def _dense_stage(a, b, modes, dens, *, opts):
+    """Dense matching among the (V_A, K) candidate vertices ``modes`` of B, with vote
+    densities ``dens`` (0: missing mode). Returns the (V_A,) map, the solver result, the
+    (V_A,) mask of the vertices the solver matched (the rest take their best candidate in
+    the map) and the map of best candidates (the votes alone, for ablations)."""
+    n, k = modes.shape
+    unary = _dense_unary(a, b, modes, dens, opts=opts)
     f = a.faces
     labels = modes[f]  # (F, 3, k)
     q = b.vertices

@@ -6,10 +6,12 @@ module:
 1. Sparse stage (:mod:`medseg.matching._sparse`): farthest-point samples of A are matched to
    farthest-point samples of B with the third-order energy (descriptor singleton costs;
    Möbius, orientation and geodesic-distortion triplet costs).
-2. Dense stage: the Möbius maps of the best matched triplets send every vertex of A to a
-   vertex of B; these votes are clustered to their modes, which become the dense candidates
-   (:mod:`medseg.matching._voting`); the dense energy (vote and descriptor singleton costs,
-   one third-order clique per face of A) is minimised by the same dual decomposition
+2. Dense matching: the Möbius maps of the best matched triplets send every vertex of A to
+   a vertex of B; these votes are clustered to their modes, which become the dense
+   candidates (:mod:`medseg.matching._voting`), and each vertex takes its cheapest one
+   (vote density and descriptor). With ``dense_stage=True`` (the paper's dense stage, and
+   the default on partial matches), the dense energy (those singleton costs, one
+   third-order clique per face of A) is minimised by dual decomposition instead
    (:mod:`medseg.matching._dense`).
 
 3. Refinement: the dense map is polished spectrally (:mod:`medseg.matching._spectral`).
@@ -61,7 +63,7 @@ from tqdm.auto import tqdm
 
 from medseg.errors import ProblemDefinitionError
 from medseg.geometry import face_areas, vertex_areas
-from medseg.matching._dense import _dense_stage
+from medseg.matching._dense import _best_candidates, _dense_stage
 from medseg.matching._descriptors import mirrored_fraction
 from medseg.matching._mesh_check import check_mesh
 from medseg.matching._solver import SolveResult
@@ -86,10 +88,11 @@ class SurfaceMatch:
         The vertices of A that have a partner on B: all of them unless ``partial=True``,
         then those the map back from B comes near.
     forward_unrefined : (V_A,) int array
-        The dense stage's map before the spectral refinement (the paper's pipeline alone).
+        The dense map before the spectral refinement (with ``dense_stage=True`` the paper's
+        pipeline alone).
     forward_votes : (V_A,) int array
         Each vertex's best dense candidate (the sparse stage and the Möbius votes, without
-        the dense stage), for ablations.
+        the dense stage), for ablations; ``forward_unrefined`` unless the dense stage ran.
     inverse : (V_B,) int array
         For each vertex of B, the vertex of A whose image is nearest to it on B; with
         ``partial=True`` the refined map back from B to A, -1 where no image of A comes
@@ -98,11 +101,11 @@ class SurfaceMatch:
         Vertex pairs (A, B) matched by the sparse stage.
     sparse : SolveResult
         Solver outcome of the sparse stage (energy, lower bound, gap, ...).
-    dense : SolveResult
-        Solver outcome of the dense stage.
+    dense : SolveResult or None
+        Solver outcome of the dense stage; None when it did not run (``dense_stage``).
     matched_fraction : float
         Fraction of vertices of A the dense solver matched (did not label "unmatched"); the
-        rest took their best dense candidate.
+        rest took their best dense candidate. NaN without the dense stage.
     mirrored_fraction : float
         Share of A whose image on B is mirrored (:func:`mirrored_fraction`): near 0 for
         an orientation-preserving map, near 1 for a left-right flip.
@@ -192,12 +195,13 @@ def _attempt(
     n_modes,
     mode_radius,
     refine,
+    dense,
     mass_a,
     opts,
     rng,
 ):
-    """Sparse stage, dense candidates, dense stage and refinement; the map's mirrored
-    fraction."""
+    """Sparse stage, dense candidates, dense stage (if ``dense``) and refinement; the map's
+    mirrored fraction."""
     timings = {}
     t0 = time.perf_counter()
     pairs, targets, sparse_res = _sparse_stage(
@@ -231,9 +235,13 @@ def _attempt(
         rng=rng,
     )
     timings["candidates"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    forward, dense_res, matched, voted = _dense_stage(a, b, modes, dens, opts=opts)
-    timings["dense"] = time.perf_counter() - t0
+    if dense:
+        t0 = time.perf_counter()
+        forward, dense_res, matched, voted = _dense_stage(a, b, modes, dens, opts=opts)
+        timings["dense"] = time.perf_counter() - t0
+    else:
+        voted = forward = _best_candidates(a, b, modes, dens, opts=opts)
+        dense_res, matched = None, np.ones(len(forward), dtype=bool)
     unrefined = forward
     # on a partial match only the matched vertices speak for the map
     fit = matched if opts["partial"] else np.ones(len(forward), dtype=bool)
@@ -302,6 +310,7 @@ def match_surfaces(
     dense_max_iter: int = 100,
     dense_one_to_one: bool = False,
     refine: bool = True,
+    dense_stage: bool | None = None,
     n_solves: int = 2,
     max_mirrored: float = 0.5,
     exclude_radius: float = 0.1,
@@ -363,6 +372,20 @@ def match_surfaces(
     refine : bool
         Polish the dense map with :func:`spectral_refine` (ZoomOut), an addition to the
         paper's pipeline. Default True.
+    dense_stage : bool or None
+        Minimise the paper's dense energy over every vertex's candidates (True), or give
+        each vertex its cheapest candidate (False). Default None: only with ``partial``,
+        where the stage's "unmatched" label tells the refinement which vertices to fit.
+        Off by default because, once refined, its maps are no better than the candidates'
+        and it costs about a sixth of the time: 10 FAUST and 10 TOSCA pairs in one run
+        (``benchmarks/bench_matching.py --methods medseg medseg-dense``, 2026-12-06) scored
+        0.054 / 0.035 mean direct error without it and 0.040 / 0.037 with it, in 0.83 /
+        0.86 of its CPU time. The FAUST difference is one pair where both maps are wrong
+        (tr_reg_069 -> tr_reg_077, 0.35 against 0.21: a solve's mirrored fraction sits at
+        ``max_mirrored``, 0.52 against 0.5); on the other 19 pairs the two agree within
+        0.004 but for TOSCA cat3 -> cat7, 0.038 without the stage against 0.049. Two
+        earlier 50 + 50 pair runs refined the candidates alone as well as the dense maps
+        (0.054 / 0.039 against 0.055 / 0.041; 0.028 / 0.042 against 0.032 / 0.044).
     n_solves : int
         Sparse solves, each followed by its own dense stage and refinement. Every solve
         after the first excludes the matches of the earlier ones, so that it settles in
@@ -406,6 +429,9 @@ def match_surfaces(
     * Units: each surface is centred and scaled to unit area before anything else, so A
       and B may come in different units (mm and m) without any option; distances in the
       options are in units of ``sqrt(area)``.
+    * The dense stage runs only when asked for (``dense_stage``, and on partial matches):
+      without it each vertex takes its cheapest Möbius-vote candidate, and the spectral
+      refinement that follows gives maps as good (see ``dense_stage``).
     * Dense stage cliques are the faces of A. For a face and a label triplet the third-order
       cost is the squared edge-length distortion (in mean edge lengths) plus
       ``lambda_gauss`` if the image triangle is mirrored against B's normals: a Möbius
@@ -498,6 +524,7 @@ def match_surfaces(
             n_modes=n_modes,
             mode_radius=mode_radius,
             refine=refine,
+            dense=partial if dense_stage is None else bool(dense_stage),
             mass_a=mass_a,
             opts=opts,
             rng=rng,
@@ -530,7 +557,7 @@ def match_surfaces(
         sparse_pairs=best["pairs"],
         sparse=best["sparse"],
         dense=best["dense"],
-        matched_fraction=float(np.mean(best["matched"])),
+        matched_fraction=np.nan if best["dense"] is None else float(np.mean(best["matched"])),
         mirrored_fraction=best["mirrored"],
         solves=[
             {
