@@ -218,7 +218,8 @@ def run(args: argparse.Namespace) -> None:
                 res = match_surfaces(va, fa, vb, fb, partial=partial, random_state=args.seed)
                 seconds["medseg"] = time.perf_counter() - t0
                 maps["medseg"] = res.forward
-                extra = {"dense_gap": res.dense.gap, "timings": res.timings}
+                gap = float("nan") if res.dense is None else res.dense.gap
+                extra = {"dense_gap": gap, "timings": res.timings}
                 extra["solves"] = [
                     {k: v for k, v in sv.items() if k not in ("forward", "unrefined")}
                     for sv in res.solves

@@ -387,7 +387,7 @@ def match_surfaces(
         earlier 50 + 50 pair runs refined the candidates alone as well as the dense maps
         (0.054 / 0.039 against 0.055 / 0.041; 0.028 / 0.042 against 0.032 / 0.044).
     n_solves : int
-        Sparse solves, each followed by its own dense stage and refinement. Every solve
+        Sparse solves, each followed by its own dense matching and refinement. Every solve
         after the first excludes the matches of the earlier ones, so that it settles in
         another basin of the symmetric ambiguity (HKS and WKS cannot tell left from right,
         and on humans hardly front from back). Of the maps that are not mirrored, the one
