@@ -144,6 +144,8 @@ def _signals(view: FrameView, probabilities: np.ndarray, nodes: np.ndarray, cut:
     column = np.zeros(256, dtype=np.intp)  # label value -> column of ``probabilities``
     column[list(view.values)] = np.arange(1, len(view.values) + 1)
     said = column[view.shape[nodes]]
+    if not len(said):  # the template left the frame's grid: nothing agrees
+        return 1.0, 1.0
     agreement = float(probabilities[np.arange(len(said)), said].mean())
     a, b = view.shape > 0, cut > 0
     dice = 2.0 * float(np.logical_and(a, b).sum()) / max(1, int(a.sum()) + int(b.sum()))
