@@ -377,6 +377,7 @@ def match_surfaces(
         each vertex its cheapest candidate (False). Default None: only with ``partial``,
         where the stage's "unmatched" label tells the refinement which vertices to fit.
         Off by default because, once refined, its maps are no better than the candidates'
+        (but for which solve is kept on a few human bodies, a fragile choice either way)
         and it costs about a sixth of the time: 10 FAUST and 10 TOSCA pairs in one run
         (``benchmarks/bench_matching.py --methods medseg medseg-dense``, 2026-12-06) scored
         0.054 / 0.035 mean direct error without it and 0.040 / 0.037 with it, in 0.83 /
@@ -385,7 +386,10 @@ def match_surfaces(
         ``max_mirrored``, 0.52 against 0.5); on the other 19 pairs the two agree within
         0.004 but for TOSCA cat3 -> cat7, 0.038 without the stage against 0.049. Two
         earlier 50 + 50 pair runs refined the candidates alone as well as the dense maps
-        (0.054 / 0.039 against 0.055 / 0.041; 0.028 / 0.042 against 0.032 / 0.044).
+        (0.054 / 0.039 against 0.055 / 0.041; 0.028 / 0.042 against 0.032 / 0.044). On the
+        50 FAUST pairs of the latter, without the stage (2026-12-06): 0.042 against 0.032,
+        the choice among solves wrong on two pairs in each run but not the same ones
+        (0.51 and 0.35 against 0.17 and 0.21), the other 47 within 0.01.
     n_solves : int
         Sparse solves, each followed by its own dense matching and refinement. Every solve
         after the first excludes the matches of the earlier ones, so that it settles in
