@@ -67,7 +67,7 @@ def build_parser() -> argparse.ArgumentParser:
         help=(
             "Run the paper's dense stage (a third-order MRF over every vertex's candidates) "
             "before the refinement; once refined its maps were no better, at about a sixth "
-            "more time (default: only with --partial)."
+            "more time (default: off)."
         ),
     )
     parser.add_argument(
@@ -111,7 +111,7 @@ def _run(args: argparse.Namespace) -> int:
         n_sparse_targets=max(args.n_targets, args.n_sparse),
         n_solves=args.n_solves,
         refine=not args.no_refine,
-        dense_stage=True if args.dense_stage else None,
+        dense_stage=args.dense_stage,
         partial=args.partial,
         random_state=args.seed,
         progress=show_progress(args.quiet),

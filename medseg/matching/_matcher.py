@@ -9,8 +9,8 @@ module:
 2. Dense matching: the Möbius maps of the best matched triplets send every vertex of A to
    a vertex of B; these votes are clustered to their modes, which become the dense
    candidates (:mod:`medseg.matching._voting`), and each vertex takes its cheapest one
-   (vote density and descriptor). With ``dense_stage=True`` (the paper's dense stage, and
-   the default on partial matches), the dense energy (those singleton costs, one
+   (vote density and descriptor). With ``dense_stage=True`` (the paper's dense stage), the
+   dense energy (those singleton costs, one
    third-order clique per face of A) is minimised by dual decomposition instead
    (:mod:`medseg.matching._dense`).
 
@@ -310,7 +310,7 @@ def match_surfaces(
     dense_max_iter: int = 100,
     dense_one_to_one: bool = False,
     refine: bool = True,
-    dense_stage: bool | None = None,
+    dense_stage: bool = False,
     n_solves: int = 2,
     max_mirrored: float = 0.5,
     exclude_radius: float = 0.1,
@@ -372,11 +372,10 @@ def match_surfaces(
     refine : bool
         Polish the dense map with :func:`spectral_refine` (ZoomOut), an addition to the
         paper's pipeline. Default True.
-    dense_stage : bool or None
+    dense_stage : bool
         Minimise the paper's dense energy over every vertex's candidates (True), or give
-        each vertex its cheapest candidate (False). Default None: only with ``partial``,
-        where the stage's "unmatched" label tells the refinement which vertices to fit.
-        Off by default because, once refined, its maps are no better than the candidates'
+        each vertex its cheapest candidate (False, the default). Off by default because,
+        once refined, its maps are no better than the candidates'
         (but for which solve is kept on a few human bodies, a fragile choice either way)
         and it costs about a sixth of the time: 10 FAUST and 10 TOSCA pairs in one run
         (``benchmarks/bench_matching.py --methods medseg medseg-dense``, 2026-12-06) scored
@@ -389,7 +388,12 @@ def match_surfaces(
         (0.054 / 0.039 against 0.055 / 0.041; 0.028 / 0.042 against 0.032 / 0.044). On the
         50 FAUST pairs of the latter, without the stage (2026-12-06): 0.042 against 0.032,
         the choice among solves wrong on two pairs in each run but not the same ones
-        (0.51 and 0.35 against 0.17 and 0.21), the other 47 within 0.01.
+        (0.51 and 0.35 against 0.17 and 0.21), the other 47 within 0.01. On strongly
+        non-isometric pairs (``bench_matching_variants.py --variant deformed``, 20 FAUST
+        pairs) the stage, whose edge-length term assumes an isometry, costs accuracy: mean
+        error 0.23 without it, 0.33 with it (pyfmaps 0.40); on partial ones (``--variant
+        partial``, 10 pairs, 20 % of one body cut away, where its "unmatched" label tells
+        the refinement which vertices to fit) 0.23 without it, 0.39 with it (pyfmaps 0.34).
     n_solves : int
         Sparse solves, each followed by its own dense matching and refinement. Every solve
         after the first excludes the matches of the earlier ones, so that it settles in
@@ -407,13 +411,14 @@ def match_surfaces(
         One surface may be only part of the other (a limb cut away, an occluded scan). Both
         must then be in the same units: they are scaled by the larger one's ``sqrt(area)``
         (not each to unit area); samples avoid the boundary of a surface with holes; the
-        refinement fits its functional maps on the vertices the dense stage matched; and
+        refinement fits its functional maps on the vertices the dense stage matched (with
+        ``dense_stage``, else on all); and
         the result says what has no partner: a map back from B to A is computed as the
         forward one is; ``forward`` is -1 on the vertices of A that it does not come near
         (``matched`` False), and ``inverse`` (the map back) on the vertices of B that the
         forward map does not come near. Not reliable yet: with 20 % of one FAUST body cut
         away (``benchmarks/bench_matching_variants.py``) the sparse stage often matches the
-        lost part's points elsewhere and the map goes wrong (mean errors 0.26 over 8 pairs).
+        lost part's points elsewhere (mean error 0.23 over 10 pairs, pyfmaps 0.34).
     random_state : int, RandomState or None
         Farthest-point seeds and the clique sampling.
     progress : bool
@@ -433,7 +438,7 @@ def match_surfaces(
     * Units: each surface is centred and scaled to unit area before anything else, so A
       and B may come in different units (mm and m) without any option; distances in the
       options are in units of ``sqrt(area)``.
-    * The dense stage runs only when asked for (``dense_stage``, and on partial matches):
+    * The dense stage runs only when asked for (``dense_stage``):
       without it each vertex takes its cheapest Möbius-vote candidate, and the spectral
       refinement that follows gives maps as good (see ``dense_stage``).
     * Dense stage cliques are the faces of A. For a face and a label triplet the third-order
@@ -528,7 +533,7 @@ def match_surfaces(
             n_modes=n_modes,
             mode_radius=mode_radius,
             refine=refine,
-            dense=partial if dense_stage is None else bool(dense_stage),
+            dense=bool(dense_stage),
             mass_a=mass_a,
             opts=opts,
             rng=rng,
