@@ -14,14 +14,12 @@ Methods, all in the same run on the same pairs:
   the spectral refinement);
 * ``medseg-norefine``: the same run's map before the refinement (each vertex on its best
   dense candidate: the sparse stage and the Möbius votes alone);
-* ``medseg-votes``: the best-candidate map of the solve kept, and ``medseg-votes-refined``
-  that map refined as medseg refines (the same maps as the two above unless the dense
-  stage runs; not timed);
 * ``medseg-solve<i>``: the map of each sparse solve (the choice among them);
 * ``medseg-dense`` (only when asked for in ``--methods``): the matcher with the paper's
   dense stage (``dense_stage=True``), timed on its own, and ``medseg-dense-norefine`` its
   map before the refinement (the paper's pipeline alone); its duality gaps are the ones
-  the summary reports;
+  the summary reports. With ``medseg`` and ``medseg-norefine`` that is the ablation: the
+  votes alone, with the dense stage, each with and without the refinement;
 * ``pyfmaps``: functional maps with WKS descriptors, orientation term and ZoomOut (pyfmaps
   1.3.1, an optional benchmark-only dependency: ``pip install pyfmaps==1.3.1``).
 
@@ -80,17 +78,6 @@ def _pyfmaps(path_a: Path, path_b: Path) -> np.ndarray:
     model.fit(K=(35, 35), w_descr=1, w_lap=1e-2, w_dcomm=1e-1, w_orient=1, verbose=False)
     fmap = model.zoomout_refine(nit=15, step=10, verbose=False)
     return np.asarray(model.get_p2p(FM=fmap), dtype=np.int64)
-
-
-def _refine_like_medseg(va, fa, vb, fb, forward) -> np.ndarray:
-    """``forward`` refined by medseg's spectral refinement, on surfaces prepared as the
-    matcher prepares them (the ablation without the dense stage)."""
-    from medseg.geometry import vertex_areas
-    from medseg.matching import prepare_surface, spectral_refine
-
-    a = prepare_surface(va, fa, n_samples=1, random_state=0)
-    b = prepare_surface(vb, fb, n_samples=1, random_state=0)
-    return spectral_refine(forward, a.evecs, vertex_areas(a.vertices, a.faces), b.evecs)
 
 
 def _log_area_ratio(va, fa, vb, fb, forward) -> tuple[float, float]:
@@ -175,10 +162,6 @@ def run(args: argparse.Namespace) -> None:
             seconds["medseg-norefine"] = seconds["medseg"] - res.timings.get("refine", 0.0)
             cpu["medseg-norefine"] = np.nan
             maps["medseg"], maps["medseg-norefine"] = res.forward, res.forward_unrefined
-            maps["medseg-votes"] = res.forward_votes
-            maps["medseg-votes-refined"] = _refine_like_medseg(va, fa, vb, fb, res.forward_votes)
-            for name in ("medseg-votes", "medseg-votes-refined"):
-                seconds[name] = cpu[name] = np.nan
             # each sparse solve's own map, to study the choice among them (no extra CPU)
             for i, solve in enumerate(res.solves):
                 maps[f"medseg-solve{i}"] = solve["forward"]
