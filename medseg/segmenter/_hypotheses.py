@@ -26,6 +26,7 @@ HYPOTHESIS_EXCLUSION_MM = 4.0
 # Iterations of each further solve, warm-started from the solve before it (the same factors,
 # only the penalised unaries differ). Hippocampus, 20 held-out subjects: mean Dice 0.810 with
 # 30 warm iterations, 0.812 with 100 from zero, at a third of the time.
+# 15 (with the first solve at 60) lost 0.0014 Dice (s.e. 0.0011, 5-fold, 398 segmentations).
 HYPOTHESIS_MAX_ITER = 30
 
 
