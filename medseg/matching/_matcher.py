@@ -10,9 +10,8 @@ module:
    a vertex of B; these votes are clustered to their modes, which become the dense
    candidates (:mod:`medseg.matching._voting`), and each vertex takes its cheapest one
    (vote density and descriptor). With ``dense_stage=True`` (the paper's dense stage), the
-   dense energy (those singleton costs, one
-   third-order clique per face of A) is minimised by dual decomposition instead
-   (:mod:`medseg.matching._dense`).
+   dense energy (those singleton costs, one third-order clique per face of A) is minimised
+   by dual decomposition instead (:mod:`medseg.matching._dense`).
 
 3. Refinement: the dense map is polished spectrally (:mod:`medseg.matching._spectral`).
 
@@ -375,25 +374,25 @@ def match_surfaces(
     dense_stage : bool
         Minimise the paper's dense energy over every vertex's candidates (True), or give
         each vertex its cheapest candidate (False, the default). Off by default because,
-        once refined, its maps are no better than the candidates'
-        (but for which solve is kept on a few human bodies, a fragile choice either way)
-        and it costs about a sixth of the time: 10 FAUST and 10 TOSCA pairs in one run
-        (``benchmarks/bench_matching.py --methods medseg medseg-dense``, 2026-12-06) scored
-        0.054 / 0.035 mean direct error without it and 0.040 / 0.037 with it, in 0.83 /
-        0.86 of its CPU time. The FAUST difference is one pair where both maps are wrong
-        (tr_reg_069 -> tr_reg_077, 0.35 against 0.21: a solve's mirrored fraction sits at
-        ``max_mirrored``, 0.52 against 0.5); on the other 19 pairs the two agree within
-        0.004 but for TOSCA cat3 -> cat7, 0.038 without the stage against 0.049. Two
-        earlier 50 + 50 pair runs refined the candidates alone as well as the dense maps
-        (0.054 / 0.039 against 0.055 / 0.041; 0.028 / 0.042 against 0.032 / 0.044). On the
-        50 FAUST pairs of the latter, without the stage (2026-12-06): 0.042 against 0.032,
-        the choice among solves wrong on two pairs in each run but not the same ones
-        (0.51 and 0.35 against 0.17 and 0.21), the other 47 within 0.01. On strongly
-        non-isometric pairs (``bench_matching_variants.py --variant deformed``, 20 FAUST
-        pairs) the stage, whose edge-length term assumes an isometry, costs accuracy: mean
-        error 0.23 without it, 0.33 with it (pyfmaps 0.40); on partial ones (``--variant
-        partial``, 10 pairs, 20 % of one body cut away, where its "unmatched" label tells
-        the refinement which vertices to fit) 0.23 without it, 0.39 with it (pyfmaps 0.34).
+        once refined, its maps are no better than the candidates' (but for which solve is
+        kept on a few human bodies, a fragile choice either way) and it costs about a sixth
+        of the time: 10 FAUST and 10 TOSCA pairs in one run (``benchmarks/bench_matching.py
+        --methods medseg medseg-dense``, 2026-12-06) scored 0.054 / 0.035 mean direct error
+        without it and 0.040 / 0.037 with it, in 0.83 / 0.86 of its CPU time. The FAUST
+        difference is one pair where both maps are wrong (tr_reg_069 -> tr_reg_077, 0.35
+        against 0.21: a solve's mirrored fraction sits at ``max_mirrored``, 0.52 against
+        0.5); on the other 19 pairs the two agree within 0.004 but for TOSCA cat3 -> cat7,
+        0.038 without the stage against 0.049. Two earlier 50 + 50 pair runs refined the
+        candidates alone as well as the dense maps (0.054 / 0.039 against 0.055 / 0.041;
+        0.028 / 0.042 against 0.032 / 0.044). On the 50 FAUST pairs of the latter, without
+        the stage (2026-12-06): 0.042 against 0.032, the choice among solves wrong on two
+        pairs in each run but not the same ones (0.51 and 0.35 against 0.17 and 0.21), the
+        other 47 within 0.01. On strongly non-isometric pairs (``bench_matching_variants.py
+        --variant deformed``, 20 FAUST pairs) the stage, whose edge-length term assumes an
+        isometry, costs accuracy: mean error 0.23 without it, 0.33 with it (pyfmaps 0.40);
+        on partial ones (``--variant partial``, 10 pairs, 20 % of one body cut away, where
+        its "unmatched" label tells the refinement which vertices to fit) 0.23 without it,
+        0.39 with it (pyfmaps 0.34).
     n_solves : int
         Sparse solves, each followed by its own dense matching and refinement. Every solve
         after the first excludes the matches of the earlier ones, so that it settles in
@@ -412,13 +411,13 @@ def match_surfaces(
         must then be in the same units: they are scaled by the larger one's ``sqrt(area)``
         (not each to unit area); samples avoid the boundary of a surface with holes; the
         refinement fits its functional maps on the vertices the dense stage matched (with
-        ``dense_stage``, else on all); and
-        the result says what has no partner: a map back from B to A is computed as the
-        forward one is; ``forward`` is -1 on the vertices of A that it does not come near
-        (``matched`` False), and ``inverse`` (the map back) on the vertices of B that the
-        forward map does not come near. Not reliable yet: with 20 % of one FAUST body cut
-        away (``benchmarks/bench_matching_variants.py``) the sparse stage often matches the
-        lost part's points elsewhere (mean error 0.23 over 10 pairs, pyfmaps 0.34).
+        ``dense_stage``, else on all); and the result says what has no partner: a map back
+        from B to A is computed as the forward one is; ``forward`` is -1 on the vertices of
+        A that it does not come near (``matched`` False), and ``inverse`` (the map back) on
+        the vertices of B that the forward map does not come near. Not reliable yet: with
+        20 % of one FAUST body cut away (``benchmarks/bench_matching_variants.py``) the sparse
+        stage often matches the lost part's points elsewhere (mean error 0.23 over 10 pairs,
+        pyfmaps 0.34).
     random_state : int, RandomState or None
         Farthest-point seeds and the clique sampling.
     progress : bool
