@@ -530,3 +530,19 @@ def test_a_posed_training_copy_takes_its_truth_from_the_original_labels(stage, c
         # the copy's image shows the structure where its truth is
         upright = sitk.GetArrayFromImage(view.upright)
         assert upright[truth > 0].mean() > upright[truth == 0].mean() + 30
+
+
+def test_signals_of_a_template_off_the_grid_say_it_disagrees():
+    """A warped template that left the frame's grid leaves the cut no voxel to decide: the
+    signals are the worst (1, 1), not a NaN mean of nothing."""
+    import warnings
+
+    from medseg.segmenter._frame_view import FrameView
+
+    shape = np.zeros((4, 4, 4), dtype=np.uint8)
+    view = FrameView(None, None, shape, np.zeros((2,) + shape.shape, np.float32), (1,))
+    nodes = np.zeros(shape.shape, dtype=bool)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        got = _boundary._signals(view, np.zeros((0, 2)), nodes, np.zeros_like(shape))
+    assert got == (1.0, 1.0)
