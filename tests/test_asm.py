@@ -176,6 +176,35 @@ def test_active_shape_model_save_load_round_trip(phantom, shape_model, tmp_path)
         ActiveShapeModel().save(tmp_path / "unfitted.npz")
 
 
+def test_training_costs_are_each_training_shape_on_its_own_image(phantom, shape_model, tmp_path):
+    """The scale a search's cost is judged on: the profile cost of every training shape."""
+    train = phantom[list(range(8))]
+    expected = [shape_model.profile_cost(c.load_image(), c.load_landmarks()) for c in train]
+    np.testing.assert_allclose(shape_model.training_costs_, expected, rtol=1e-12)
+    # a held-out case at its truth fits worse than the training shapes do on average
+    held_out = shape_model.profile_cost(phantom[8].load_image(), phantom[8].load_landmarks())
+    assert held_out > np.mean(expected)
+    again = ActiveShapeModel.load(shape_model.save(tmp_path / "asm.npz"))
+    np.testing.assert_array_equal(again.training_costs_, shape_model.training_costs_)
+    # a file of format version 1 has none, and says so; saved again it stays version 1
+    header, arrays = load_arrays(tmp_path / "asm.npz", what="test")
+    assert header["format_version"] == 2
+    del arrays["training_costs"]
+    save_arrays(tmp_path / "v1.npz", arrays, header=header | {"format_version": 1})
+    old = ActiveShapeModel.load(tmp_path / "v1.npz")
+    assert old.training_costs_ is None
+    np.testing.assert_array_equal(
+        old.search(phantom[8].load_image()).landmarks,
+        shape_model.search(phantom[8].load_image()).landmarks,
+    )
+    header, _ = load_arrays(old.save(tmp_path / "v1_again.npz"), what="test")
+    assert header["format_version"] == 1
+    arrays["training_costs"] = np.array([1.0, np.nan])
+    save_arrays(tmp_path / "nan.npz", arrays, header=header)
+    with pytest.raises(ModelFileError, match="inconsistent"):
+        ActiveShapeModel.load(tmp_path / "nan.npz")
+
+
 def test_asm_with_the_regional_stage_refines_its_own_shape_only_map(phantom):
     train, test = phantom[list(range(8))], phantom[8]
     asm = ASMBaseline(boundary=True, random_state=0).fit(train)

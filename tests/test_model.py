@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import hashlib
 import json
 import shutil
 from pathlib import Path
@@ -16,7 +17,14 @@ import medseg
 from medseg.datasets import make_phantom_cohort, write_cohort
 from medseg.errors import CohortError, ModelFileError, NotFittedError
 from medseg.inference.cli import main as segment_main
-from medseg.io import image_geometry, physical_to_voxel, read_image, read_landmarks
+from medseg.io import (
+    image_geometry,
+    load_arrays,
+    physical_to_voxel,
+    read_image,
+    read_landmarks,
+    save_arrays,
+)
 from medseg.segmenter import ShapePriorSegmenter, load_model
 from medseg.training.cli import main as train_main
 
@@ -168,7 +176,8 @@ def _as_older_version(saved: Path, folder: Path, version: int) -> Path:
     old = Path(shutil.copytree(saved, folder))
     meta = json.loads((old / "model.json").read_text(encoding="utf-8"))
     stage = sorted(str(p.relative_to(saved)) for p in (saved / "boundary").iterdir())
-    dropped = {4: (stage, ["boundary"])}
+    dropped = {5: ([], ["hypothesis_quantile"])}
+    dropped[4] = (stage, dropped[5][1] + ["boundary"])
     dropped[3] = (dropped[4][0] + ["frame.npz"], dropped[4][1] + ["frame_passes", "augment_poses"])
     dropped[2] = (
         dropped[3][0] + ["shape_model.npz"],
@@ -182,8 +191,15 @@ def _as_older_version(saved: Path, folder: Path, version: int) -> Path:
     for name in files:
         (old / name).unlink()
         meta["checksums"].pop(name)
-    if (old / "boundary").is_dir():
+    if (old / "boundary").is_dir() and version < 5:
         (old / "boundary").rmdir()
+    if (old / "shape_model.npz").is_file():  # before version 6: no training costs
+        header, arrays = load_arrays(old / "shape_model.npz", what="test")
+        del arrays["training_costs"]
+        save_arrays(old / "shape_model.npz", arrays, header=header | {"format_version": 1})
+        meta["checksums"]["shape_model.npz"] = hashlib.sha256(
+            (old / "shape_model.npz").read_bytes()
+        ).hexdigest()
     for name in params:
         meta["params"].pop(name)
     meta["format_version"] = version
@@ -228,6 +244,57 @@ def test_older_model_versions_still_load_and_run_without_their_missing_parts(
     meta = json.loads((again / "model.json").read_text(encoding="utf-8"))
     assert meta["format_version"] == version
     assert load_model(again).frame_ is None
+
+
+def test_a_version_5_model_solves_every_hypothesis_as_before(fitted, saved, cohort, tmp_path):
+    loaded = load_model(_as_older_version(saved, tmp_path / "v5", 5))
+    assert loaded.shape_model_.training_costs_ is None and loaded._accept_cost() is None
+    assert loaded.boundary_ is not None and loaded.hypothesis_quantile == 0.9  # the default
+    always = copy.copy(fitted)
+    always.hypothesis_quantile = None
+    image = cohort[6].load_image()
+    seg, expected = loaded.segment(image), always.segment(image)
+    assert len(seg.hypotheses) == len(expected.hypotheses)
+    np.testing.assert_array_equal(seg.landmarks, expected.landmarks)
+    again = loaded.save(tmp_path / "again")
+    assert json.loads((again / "model.json").read_text(encoding="utf-8"))["format_version"] == 5
+    assert json.loads((saved / "model.json").read_text(encoding="utf-8"))["format_version"] == 6
+
+
+def test_further_hypotheses_only_when_the_optimum_fits_worse_than_the_training_shapes(
+    fitted, cohort
+):
+    image = cohort[6].load_image()
+    always = copy.copy(fitted)
+    always.hypothesis_quantile = None
+    full = always.segment(image)
+    first = full.hypotheses[0]
+    assert len(full.hypotheses) > 1
+
+    def with_training_costs(costs):
+        model = copy.copy(fitted)
+        model.shape_model_ = copy.copy(fitted.shape_model_)
+        model.shape_model_.training_costs_ = np.asarray(costs, dtype=float)
+        return model
+
+    # the refined optimum fits as well as the training shapes: kept alone
+    kept = with_training_costs([first.profile_cost]).segment(image)
+    assert len(kept.hypotheses) == 1
+    np.testing.assert_array_equal(kept.landmarks, first.landmarks)
+    # a hair worse than all of them: every hypothesis, as when always solved
+    worse = with_training_costs([np.nextafter(first.profile_cost, -np.inf)]).segment(image)
+    assert len(worse.hypotheses) == len(full.hypotheses)
+    np.testing.assert_array_equal(worse.landmarks, full.landmarks)
+    # the quantile picks the threshold among the training costs
+    costs = [first.profile_cost - 1.0, first.profile_cost + 1.0]
+    picky = with_training_costs(costs)
+    picky.hypothesis_quantile = 0.0
+    assert len(picky.segment(image).hypotheses) == len(full.hypotheses)
+    picky.hypothesis_quantile = 1.0
+    assert len(picky.segment(image).hypotheses) == 1
+    np.testing.assert_allclose(
+        fitted._accept_cost(), np.quantile(fitted.shape_model_.training_costs_, 0.9)
+    )
 
 
 @pytest.mark.parametrize(
@@ -275,6 +342,7 @@ def test_refinement_keeps_the_mrf_solution_that_fits_the_image_best(fitted, coho
     bad_values = {
         "refine_levels": (-1, 4, 1.5, True),
         "n_hypotheses": (0, 2.0),
+        "hypothesis_quantile": (-0.1, 1.5, True, "0.9"),
         "frame_passes": (-1, 1.0, True),
     }
     for name, bad in [(name, v) for name, values in bad_values.items() for v in values]:

@@ -4,7 +4,9 @@ A refined solution cannot be better than the configuration it starts from. After
 optimum, each further solve makes the candidates near the earlier solutions' landmarks cost
 more, so that it lands on another configuration; every one is refined, and the segmenter
 keeps the one whose boundary profiles fit the image best (a pose-invariant check of the
-MRF's choice by the image).
+MRF's choice by the image). When the optimum, refined, already fits as well as the training
+shapes fit their own images, the further solves are skipped: they cost most of the time
+and on such cases change the result by chance only.
 """
 
 from __future__ import annotations
@@ -42,6 +44,7 @@ def refined_hypotheses(
     n_hypotheses: int,
     refine_levels: int,
     solve_options: dict,
+    accept_cost: float | None = None,
 ) -> list[Hypothesis]:
     """The MRF's optimum and ``n_hypotheses - 1`` solutions away from it, each refined.
 
@@ -61,6 +64,9 @@ def refined_hypotheses(
         Keyword arguments of :func:`medseg.mrf.solve` for the further solves (their
         ``max_iter`` capped at :data:`HYPOTHESIS_MAX_ITER`, each warm-started from the
         solve before it).
+    accept_cost : float, optional
+        A profile cost at or below which the refined optimum is kept alone (no further
+        solves); None always solves ``n_hypotheses``.
     """
     rows = np.arange(positions.shape[0])
     penalised = np.array(unaries, dtype=float)
@@ -89,6 +95,8 @@ def refined_hypotheses(
             continue  # collapsed onto shared candidates: nothing to refine
         found = shape_model.search(image, start=chosen, levels=int(refine_levels))
         out.append(Hypothesis(labels, chosen, found.landmarks, found.profile_cost))
+        if not k and accept_cost is not None and found.profile_cost <= accept_cost:
+            break
     return out
 
 

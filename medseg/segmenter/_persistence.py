@@ -48,18 +48,22 @@ from medseg.segmenter._boundary import BoundaryStage
 from medseg.shape import ActiveShapeModel, OrientationPrior, TripletPrior
 
 FORMAT = "medseg-shape-prior-segmenter"
-FORMAT_VERSION = 5
+FORMAT_VERSION = 6
 #: versions this medseg reads: 1 lacks the handedness term (``orientation.npz``), 1 and 2
 #: the landmark refinement (``shape_model.npz`` and the ``refine_levels`` parameter), 1-3
 #: the shape's frame (``frame.npz``, ``frame_passes``), 1-4 the regional stage
-#: (``boundary/``, ``boundary``)
-_READABLE_VERSIONS = (1, 2, 3, 4, 5)
+#: (``boundary/``, ``boundary``), 1-5 the hypotheses' stopping rule
+#: (``hypothesis_quantile``; their shape model has no training costs)
+_READABLE_VERSIONS = (1, 2, 3, 4, 5, 6)
 #: format version that introduced an optional file or parameter
 _SINCE = {
     "orientation.npz": 2,
     "shape_model.npz": 3,
     "refine_levels": 3,
     "n_hypotheses": 3,
+    # new in 6, but written with the shape model it applies to, so that a model without the
+    # regional stage (saved as version 4) keeps it
+    "hypothesis_quantile": 3,
     "frame.npz": 4,
     "frame_passes": 4,
     "augment_poses": 4,
@@ -79,6 +83,7 @@ _PARAMS = (
     "orientation_sigma_mm",
     "refine_levels",
     "n_hypotheses",
+    "hypothesis_quantile",
     "frame_passes",
     "boundary",
     "landmark_noise_mm",
@@ -150,6 +155,8 @@ def save_model(model, path: Path) -> Path:
                     if getattr(model, "boundary_", None) is not None:
                         model.boundary_.save(tmp / "boundary")
                         version = 5
+                        if model.shape_model_.training_costs_ is not None:
+                            version = 6
         meta = {
             "format": FORMAT,
             "format_version": version,

@@ -170,6 +170,11 @@ class ActiveShapeModel(BaseEstimator):
         Index of the training shape nearest the mean after alignment (a template).
     profile_means_ : (levels, N, 2k+1) float array
     profile_precisions_ : (levels, N, 2k+1, 2k+1) float array
+    training_costs_ : (S,) float array or None
+        :meth:`profile_cost` of each training shape on its own image: how well a correct
+        instance fits, the scale a search's cost is judged on. In-sample, so lower than a
+        held-out case's at its truth, the more so the fewer the training shapes. None for a
+        model saved before it existed (format version 1).
     """
 
     _converged_shift = 1  # profile steps; a level ends when 90 % of moves are this small
@@ -250,6 +255,8 @@ class ActiveShapeModel(BaseEstimator):
             precisions.append(np.stack([LedoitWolf().fit(g_i).precision_ for g_i in g]))
         self.profile_means_ = np.stack(means)
         self.profile_precisions_ = np.stack(precisions)
+        finest = per_level[0]  # (N, 2k+1) per training shape
+        self.training_costs_ = np.array([self._cost(profiles) for profiles in finest])
         return self
 
     # -- search -----------------------------------------------------------------------------
@@ -353,8 +360,11 @@ class ActiveShapeModel(BaseEstimator):
         k = self.profile_half
         _, step = self._level_sigma_step(0)
         normals = vertex_normals(landmarks, self.faces_)
-        diff = _normalise(_profiles(image, finest, landmarks, normals, k, step))
-        diff = diff - self.profile_means_[0]
+        return self._cost(_normalise(_profiles(image, finest, landmarks, normals, k, step)))
+
+    def _cost(self, profiles: np.ndarray) -> float:
+        """Mean Mahalanobis distance of (N, 2k+1) normalised finest-level profiles."""
+        diff = profiles - self.profile_means_[0]
         return float(np.einsum("ni,nij,nj->n", diff, self.profile_precisions_[0], diff).mean())
 
     def profile_cost(self, image: sitk.Image, landmarks) -> float:
@@ -375,7 +385,8 @@ class ActiveShapeModel(BaseEstimator):
     # -- persistence ------------------------------------------------------------------------
 
     FORMAT = "medseg.shape.ActiveShapeModel"
-    FORMAT_VERSION = 1
+    # 2: the training shapes' own profile costs (training_costs); 1 still loads
+    FORMAT_VERSION = 2
 
     def save(self, path) -> Path:
         """Write the fitted model to one ``.npz`` file (:func:`medseg.io.save_arrays`)."""
@@ -391,7 +402,11 @@ class ActiveShapeModel(BaseEstimator):
             profile_means=self.profile_means_,
             profile_precisions=self.profile_precisions_,
         )
-        header = {"format": self.FORMAT, "format_version": self.FORMAT_VERSION}
+        version = 1  # a model loaded from version 1 keeps it
+        if self.training_costs_ is not None:
+            arrays["training_costs"] = self.training_costs_
+            version = self.FORMAT_VERSION
+        header = {"format": self.FORMAT, "format_version": version}
         return save_arrays(path, arrays, header=header)
 
     @classmethod
@@ -421,6 +436,8 @@ class ActiveShapeModel(BaseEstimator):
             prec = np.asarray(state["profile_precisions"], dtype=float)
             mean_size = float(state["mean_size"])
             closest = int(state["closest_to_mean"])
+            costs = state.get("training_costs")
+            costs = None if costs is None else np.asarray(costs, dtype=float)
         except (KeyError, TypeError, ValueError) as exc:
             raise ModelFileError(f"{path} is incomplete or corrupt ({exc})") from None
         n, width = len(mean), 2 * model.profile_half + 1
@@ -433,6 +450,7 @@ class ActiveShapeModel(BaseEstimator):
             or faces.max(initial=0) >= n
             or means.shape != (model.n_levels, n, width)
             or prec.shape != (model.n_levels, n, width, width)
+            or (costs is not None and (costs.ndim != 1 or not np.isfinite(costs).all()))
         ):
             raise ModelFileError(f"{path}: active shape model arrays of inconsistent shapes")
         model.mean_shape_, model.modes_, model.eigenvalues_ = mean, modes, eig
@@ -440,4 +458,5 @@ class ActiveShapeModel(BaseEstimator):
         model.faces_ = faces
         model.closest_to_mean_ = closest
         model.profile_means_, model.profile_precisions_ = means, prec
+        model.training_costs_ = costs
         return model
