@@ -72,8 +72,9 @@ class Segmentation:
         active-shape refinement that gives ``landmarks`` (equal to them without it).
     hypotheses : list of Hypothesis
         With refinement: the MRF solutions that were refined, the first being the MRF's
-        optimum (``mrf``), each labelling once; ``landmarks`` come from the one with the
-        lowest profile cost. Empty without refinement.
+        optimum (``mrf``; alone when it fit well enough, see ``hypothesis_quantile``), each
+        labelling once; ``landmarks`` come from the one with the lowest profile cost. Empty
+        without refinement.
     quality : dict or None
         With the regional stage: ``score`` (how many standard deviations beyond the
         held-out training cases this case's disagreement between image and shape lies,
