@@ -546,3 +546,16 @@ def test_signals_of_a_template_off_the_grid_say_it_disagrees():
         warnings.simplefilter("error")
         got = _boundary._signals(view, np.zeros((0, 2)), nodes, np.zeros_like(shape))
     assert got == (1.0, 1.0)
+
+
+def test_joined_training_features_are_the_joined_matrix_row_by_row():
+    rng = np.random.default_rng(0)
+    features = rng.normal(size=(50, 4)).astype(np.float32)
+    context = rng.normal(size=(50, 3)).astype(np.float32)
+    joined = _boundary._Joined(features, context)
+    full = np.hstack([features, context])
+    rows = rng.permutation(50)[:17]
+    assert len(joined) == 50
+    np.testing.assert_array_equal(joined[rows], full[rows])
+    np.testing.assert_array_equal(np.asarray(joined), full)
+    assert np.asarray(joined, dtype=np.float64).dtype == np.float64
