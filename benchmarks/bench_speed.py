@@ -12,16 +12,16 @@ On the hippocampus cohort of ``../shared/data`` (labels 1+2), in one run:
   ``--model`` that does not exist yet is where the trained model is kept);
 * **model**: the folder's size on disk, and in a fresh interpreter (3 times) the seconds of
   importing the segmenter (scikit-learn, SciPy, SimpleITK, ...) and of ``load_model``;
-* **one case**: ``segment`` of ``--cases`` images of distinct subjects in this process with
-  one thread (the first call is a warm-up and not counted): median seconds and the median
-  of each stage;
+* **one case**: ``segment`` of ``--cases`` images of distinct subjects in this process, on
+  one thread and on ``--jobs`` threads (``n_jobs``; the two alternated image by image, the
+  first image a warm-up not counted): median seconds and the median of each stage;
 * **a folder**: ``medseg-segment --jobs`` on a folder of ``--folder`` images (links to the
   cohort's files): wall seconds and the peak memory of its largest process;
 * **the baseline**: :class:`~medseg.evaluation.baselines.MultiAtlasBaseline` (``--atlases``
   atlases, affine, Mattes MI, majority vote; its defaults) fitted on the cases of the other
   subjects and run on the same ``--cases`` images with ``--jobs`` threads: median seconds,
-  and the ratios ``baseline / medseg`` per case (one thread against ``--jobs``) and per
-  case of a folder (both on ``--jobs`` cores).
+  and the ratios ``baseline / medseg`` per case (one thread against ``--jobs``; and both on
+  ``--jobs`` threads) and per case of a folder (both on ``--jobs`` cores).
 
 The figures go to stdout and ``--out`` as JSON. Timings are wall-clock on whatever else the
 machine runs: run it alone. Nothing is written into the repository.
@@ -104,25 +104,33 @@ def _distinct_subjects(cohort, n: int) -> list[int]:
     return picked[:n]
 
 
-def _per_case(model_dir: Path, cohort, cases: list[int]) -> dict:
+def _per_case(model_dir: Path, cohort, cases: list[int], jobs: int) -> dict:
     from medseg import load_model
 
     model = load_model(model_dir)
-    model.n_jobs = 1
-    model.detector_.n_jobs = 1
     images = [cohort[i].load_image() for i in cases]
-    model.segment(images[0])  # warm-up: first-call costs (imports, caches) are not a case's
-    seconds, stages = [], {}
+    runs = {threads: ([], {}) for threads in dict.fromkeys((1, jobs))}
+    for threads in runs:  # warm-up: first-call costs (imports, caches, the thread pool)
+        model.n_jobs = threads
+        model.segment(images[0])
     for image in images[1:]:
-        t0 = time.perf_counter()
-        seg = model.segment(image)
-        seconds.append(time.perf_counter() - t0)
-        for name, value in seg.timings.items():
-            stages.setdefault(name, []).append(value)
-    return {
-        "median_seconds": float(np.median(seconds)),
-        "seconds": seconds,
-        "stage_median_seconds": {k: float(np.median(v)) for k, v in stages.items()},
+        for threads, (seconds, stages) in runs.items():  # alternated: the same drift
+            model.n_jobs = threads  # the forests' threads (segment passes it on)
+            t0 = time.perf_counter()
+            seg = model.segment(image)
+            seconds.append(time.perf_counter() - t0)
+            for name, value in seg.timings.items():
+                stages.setdefault(name, []).append(value)
+
+    def summary(seconds, stages):
+        return {
+            "median_seconds": float(np.median(seconds)),
+            "seconds": seconds,
+            "stage_median_seconds": {k: float(np.median(v)) for k, v in stages.items()},
+        }
+
+    return summary(*runs[1]) | {
+        "threads": {str(t): summary(*run) for t, run in runs.items() if t != 1},
         "peak_mb_this_process": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
     }
 
@@ -188,7 +196,7 @@ def main(argv=None) -> int:
         result["load"] = _load_seconds(model)
         print(json.dumps({k: result[k] for k in ("model_mb", "load")}), flush=True)
         cases = _distinct_subjects(cohort, args.cases + 1)
-        result["per_case"] = _per_case(model, cohort, cases)
+        result["per_case"] = _per_case(model, cohort, cases, args.jobs)
         print(json.dumps({"per_case": result["per_case"]}), flush=True)
         result["folder"] = _folder(model, cohort, min(args.folder, len(cohort)), args.jobs)
         print(json.dumps({"folder": result["folder"]}), flush=True)
@@ -197,6 +205,11 @@ def main(argv=None) -> int:
     atlas = result["multi_atlas"]["median_seconds"]
     result["ratio_baseline_to_medseg_per_case"] = atlas / one
     result["ratio_baseline_to_medseg_folder"] = atlas / result["folder"]["seconds_per_case"]
+    threaded = result["per_case"]["threads"].get(str(args.jobs))
+    if threaded is not None:  # both on --jobs threads
+        result["ratio_baseline_to_medseg_per_case_same_threads"] = (
+            atlas / threaded["median_seconds"]
+        )
     text = json.dumps(result, indent=1)
     print(text)
     if args.out is not None:

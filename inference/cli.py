@@ -97,7 +97,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="Worker processes segmenting the images of a folder; each loads the model once "
         "and runs its forests on (cores / JOBS) threads. Fewer when JOBS times one image's "
         "estimated peak memory would exceed the memory limit (MEDSEG_MEMORY_LIMIT_GB, "
-        "default half the RAM). 1: in this process; one input file ignores it. "
+        "default half the RAM). 1: in this process, its forests on every core; so is one "
+        "input file. "
         f"Default: the machine's cores ({machine_cores()} here).",
     )
     return parser
@@ -225,8 +226,7 @@ def _start_worker(model_path: str, threads: int) -> None:
     _WORKER_LIMITS = threadpool_limits(limits=threads)  # BLAS / OpenMP pools
     sitk.ProcessObject.SetGlobalDefaultNumberOfThreads(threads)  # ITK's filters
     model = load_model(model_path)
-    model.n_jobs = threads
-    model.detector_.n_jobs = threads  # the forests' threads at prediction
+    model.n_jobs = threads  # the forests' threads at prediction (segment passes it on)
     _WORKER_MODEL = model
     _WORKER_READY = True
 
@@ -370,6 +370,7 @@ def _run(args: argparse.Namespace) -> int:
     from medseg.segmenter import load_model
 
     model = load_model(args.model)
+    model.n_jobs = machine_cores()  # in this process: every core (a worker takes its share)
     if not args.no_boundary and getattr(model, "boundary_", None) is None:
         print(
             f"medseg-segment: {args.model} has no regional stage (trained with --no-boundary, "

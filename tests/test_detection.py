@@ -603,21 +603,25 @@ def test_posed_copies_add_training_samples(blobs, small_settings):
     assert 2.0 <= ratio <= 4.0
 
 
-def test_forests_on_one_job_score_as_scikit_learn_does(fitted, blobs):
-    """``forest_proba`` skips scikit-learn's thread pool on one job: the same sums in the
-    same order, so the same probabilities to the bit, for float64 and float32 rows."""
-    from medseg.detection._prediction import forest_features, forest_proba
+def test_forests_score_as_scikit_learn_does_on_one_job_whatever_the_threads(fitted, blobs):
+    """``forest_proba`` sums the trees in the forest's order, as scikit-learn does on one
+    job: the same probabilities to the bit, for float64 and float32 rows, and on two threads
+    (the rows split in two blocks) as on one."""
+    from medseg.detection._prediction import _ROWS_PER_THREAD, forest_features, forest_proba
 
     image = blobs[7][0]
     rows = forest_features(fitted, image, None).reshape(-1, fitted.n_features_)[::7]
+    assert len(rows) >= 2 * _ROWS_PER_THREAD  # enough for two threads' blocks
     for forest in fitted.forests_[:3]:
         saved = forest.n_jobs
         try:
             forest.n_jobs = 1
             expected = forest.predict_proba(rows)
-            for X in (rows.astype(np.float64), rows.astype(np.float32)):
-                got = forest_proba(forest, X)
-                assert got.dtype == np.float64 and np.array_equal(got, expected)
+            for jobs in (1, 2):
+                forest.n_jobs = jobs
+                for X in (rows.astype(np.float64), rows.astype(np.float32)):
+                    got = forest_proba(forest, X)
+                    assert got.dtype == np.float64 and np.array_equal(got, expected)
             assert 0.0 < expected[:, 1].max() and expected[:, 1].min() < 1.0  # not constant
         finally:
             forest.n_jobs = saved

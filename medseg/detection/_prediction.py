@@ -14,8 +14,12 @@ argument and only read it (``predict_rows`` sets its forests' thread count).
 
 from __future__ import annotations
 
+import functools
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 import SimpleITK as sitk
+from joblib import effective_n_jobs
 
 from medseg.detection._context import context_features, context_names
 from medseg.detection._features import compute_features, feature_names, require_image
@@ -39,7 +43,7 @@ __all__ = [
 ]
 
 CONTEXT_STRIDE = 2  # stage-1 maps for the context features: every other voxel per axis
-_THREADED_ROWS = 20000  # fewer rows are scored on one thread
+_ROWS_PER_THREAD = 500  # fewer rows a thread are scored on the calling thread
 
 
 # ---------------------------------------------------------------------------------- inputs
@@ -180,10 +184,8 @@ def predict_rows(detector, X: np.ndarray, landmarks=None) -> np.ndarray:
     out = np.zeros((X.shape[0], len(landmarks)), dtype=np.float32)
     if X.shape[0] == 0:
         return out
-    # Threads cost more than they save on small batches (refinement neighbourhoods).
-    n_jobs = detector.n_jobs if X.shape[0] >= _THREADED_ROWS else 1
     for forest in detector.forests_:
-        forest.n_jobs = n_jobs
+        forest.n_jobs = detector.n_jobs  # forest_proba's threads
     # the trees' dtype, converted once here rather than by every forest's call
     X = np.ascontiguousarray(X, dtype=np.float32)
     if detector.mode == "per_landmark":
@@ -203,22 +205,38 @@ def predict_rows(detector, X: np.ndarray, landmarks=None) -> np.ndarray:
 
 
 def forest_proba(forest, X: np.ndarray) -> np.ndarray:
-    """``forest.predict_proba(X)``, without its thread pool when the forest has one job.
+    """``forest.predict_proba(X)``, the same to the bit on any number of threads.
 
-    A segmentation scores many small batches (every landmark's refinement neighbourhoods,
-    each by its own forest): scikit-learn's per-call set-up (a joblib pool over the trees,
-    its warning filters) then costs more than the trees. On one job the trees are summed
-    here in the forest's order, as scikit-learn sums them, so the result is the same to
-    the bit (``tests/test_detection.py``).
+    The rows are split into one block per thread (``forest.n_jobs``, each block at least
+    :data:`_ROWS_PER_THREAD` rows), and every block sums its trees in the forest's order, as
+    scikit-learn does on one job (``tests/test_detection.py``). Scikit-learn's own threads
+    add the trees' votes in the order they finish, so its sums change in the last bit from
+    one run to the next; and on small batches (every landmark's refinement neighbourhoods,
+    each by its own forest) its per-call set-up (a joblib pool over the trees, its warning
+    filters) costs more than the trees.
     """
-    if forest.n_jobs not in (None, 1):
-        return forest.predict_proba(X)
     X = np.ascontiguousarray(X, dtype=np.float32)  # the trees' dtype (no copy if it is)
+    blocks = min(effective_n_jobs(forest.n_jobs), X.shape[0] // _ROWS_PER_THREAD)
+    if blocks <= 1:
+        return _tree_sum(forest, X)
+    edges = np.linspace(0, X.shape[0], blocks + 1).astype(int).tolist()
+    parts = _threads(blocks).map(lambda a, b: _tree_sum(forest, X[a:b]), edges[:-1], edges[1:])
+    return np.concatenate(list(parts))
+
+
+def _tree_sum(forest, X: np.ndarray) -> np.ndarray:
+    """The forest's probabilities of the float32 rows ``X``, its trees summed in order."""
     total = np.zeros((X.shape[0], forest.n_classes_), dtype=np.float64)
     for tree in forest.estimators_:
         total += tree.predict_proba(X, check_input=False)
     total /= len(forest.estimators_)
     return total
+
+
+@functools.cache
+def _threads(n: int) -> ThreadPoolExecutor:
+    """A pool of ``n`` threads, made once per process (the trees release the GIL)."""
+    return ThreadPoolExecutor(max_workers=n, thread_name_prefix="medseg-forest")
 
 
 def region_keep(detector, X: np.ndarray) -> np.ndarray:
@@ -227,7 +245,7 @@ def region_keep(detector, X: np.ndarray) -> np.ndarray:
     if region is None or X.shape[0] == 0:
         return np.ones(X.shape[0], dtype=bool)
     # the region forest sees the local features, the first columns of either stage
-    region.n_jobs = detector.n_jobs if X.shape[0] >= _THREADED_ROWS else 1
+    region.n_jobs = detector.n_jobs
     p = forest_proba(region, X[:, : region.n_features_in_])[:, list(region.classes_).index(1)]
     keep = p >= float(detector.region_threshold)
     floor = min(X.shape[0], max(64, X.shape[0] // 100))

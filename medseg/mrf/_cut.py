@@ -311,7 +311,11 @@ def minimize_binary(unary: ArrayLike, edges: ArrayLike, pairwise: ArrayLike) -> 
         minimum by at most :func:`binary_cut_bound`. Ties go to label 0. Without edges the
         result is the per-node argmin and exact.
     """
-    u, e, p = _check_binary(unary, edges, pairwise)
+    return _minimum(*_check_binary(unary, edges, pairwise))
+
+
+def _minimum(u: np.ndarray, e: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """:func:`minimize_binary` of arrays already checked (or built valid, as a move's are)."""
     r = _reduce(u, e, p)
     net = _quantise(r)
     if net is None:
@@ -397,7 +401,9 @@ def _expansion_move(
         [both_keep[pair], j_moves[pair], i_moves[pair], np.zeros(int(pair.sum()))], axis=1
     )
     edges = np.stack([index[i[pair]], index[j[pair]]], axis=1)
-    switch = minimize_binary(np.stack([stay, move], axis=1), edges, table)
+    # valid by construction (finite costs: the labels kept and alpha are allowed; edges
+    # between distinct free nodes), so the checks of the public entry are skipped
+    switch = _minimum(np.stack([stay, move], axis=1), edges, table)
     g = f.copy()
     g[where[switch]] = alpha
     return g

@@ -602,6 +602,7 @@ class BoundaryStage:
 
     def _probabilities(self, classifier: VoxelClassifier, features: np.ndarray) -> np.ndarray:
         """(n, 1 + K) probabilities in the order background, ``values_`` (0 if unseen)."""
+        classifier.n_jobs = self.n_jobs  # its threads (a loaded classifier has one)
         proba = classifier.predict_proba(features)
         out = np.zeros((len(features), 1 + len(self.values_)))
         for column, value in enumerate((0,) + tuple(self.values_)):

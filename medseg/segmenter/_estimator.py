@@ -425,6 +425,7 @@ class ShapePriorSegmenter(BaseEstimator):
         self._check_refinement()
         source = image
         image = read_image(image)
+        self._share_threads()
         found = self._locate(image, use_prior=use_prior, candidates=candidates)
         if use_prior and self._uses_frame():
             found = in_frame_passes(
@@ -466,6 +467,12 @@ class ShapePriorSegmenter(BaseEstimator):
             frame_pose=found.frame_pose,
             quality=quality,
         )
+
+    def _share_threads(self) -> None:
+        """The forests' threads at prediction: ``n_jobs``, for the detector and the stage."""
+        self.detector_.n_jobs = self.n_jobs
+        if getattr(self, "boundary_", None) is not None:
+            self.boundary_.n_jobs = self.n_jobs
 
     def _locate(
         self, image, *, use_prior: bool = True, candidates: CandidateSet | None = None
