@@ -14,9 +14,6 @@ argument and only read it (``predict_rows`` sets its forests' thread count).
 
 from __future__ import annotations
 
-import functools
-from concurrent.futures import ThreadPoolExecutor
-
 import numpy as np
 import SimpleITK as sitk
 from joblib import effective_n_jobs
@@ -26,6 +23,7 @@ from medseg.detection._features import compute_features, feature_names, require_
 from medseg.detection._memory import feature_map_bytes
 from medseg.errors import ImageGeometryError, LabelError, ParameterError
 from medseg.memory import check_memory
+from medseg.threads import thread_map
 
 __all__ = [
     "check_feature_memory",
@@ -216,12 +214,12 @@ def forest_proba(forest, X: np.ndarray) -> np.ndarray:
     filters) costs more than the trees.
     """
     X = np.ascontiguousarray(X, dtype=np.float32)  # the trees' dtype (no copy if it is)
-    blocks = min(effective_n_jobs(forest.n_jobs), X.shape[0] // _ROWS_PER_THREAD)
-    if blocks <= 1:
+    n_blocks = min(effective_n_jobs(forest.n_jobs), X.shape[0] // _ROWS_PER_THREAD)
+    if n_blocks <= 1:
         return _tree_sum(forest, X)
-    edges = np.linspace(0, X.shape[0], blocks + 1).astype(int).tolist()
-    parts = _threads(blocks).map(lambda a, b: _tree_sum(forest, X[a:b]), edges[:-1], edges[1:])
-    return np.concatenate(list(parts))
+    edges = np.linspace(0, X.shape[0], n_blocks + 1).astype(int).tolist()
+    blocks = [X[a:b] for a, b in zip(edges[:-1], edges[1:], strict=True)]
+    return np.concatenate(thread_map(lambda rows: _tree_sum(forest, rows), blocks, len(blocks)))
 
 
 def _tree_sum(forest, X: np.ndarray) -> np.ndarray:
@@ -231,12 +229,6 @@ def _tree_sum(forest, X: np.ndarray) -> np.ndarray:
         total += tree.predict_proba(X, check_input=False)
     total /= len(forest.estimators_)
     return total
-
-
-@functools.cache
-def _threads(n: int) -> ThreadPoolExecutor:
-    """A pool of ``n`` threads, made once per process (the trees release the GIL)."""
-    return ThreadPoolExecutor(max_workers=n, thread_name_prefix="medseg-forest")
 
 
 def region_keep(detector, X: np.ndarray) -> np.ndarray:

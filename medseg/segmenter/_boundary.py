@@ -58,6 +58,7 @@ from medseg.io import check_format, load_arrays, random_pose, save_arrays
 from medseg.mrf import grid_edges, potts_expansion
 from medseg.segmenter._atlases import FrameAtlases
 from medseg.segmenter._frame_view import FrameView, frame_view, template_values, to_input
+from medseg.threads import thread_map
 
 __all__ = ["BoundaryStage", "Refined"]
 
@@ -577,8 +578,9 @@ class BoundaryStage:
                 if key in scores:
                     continue
                 smooth, weight, bias = key
-                values, said = [], []
-                for (view, truth, nodes, _), probabilities in held:
+
+                def judged(case, smooth=smooth, weight=weight, bias=bias):
+                    (view, truth, nodes, _), probabilities = case
                     cut = _cut(
                         view,
                         probabilities,
@@ -588,9 +590,14 @@ class BoundaryStage:
                         shape_weight=weight,
                         foreground_bias=bias,
                     )
-                    values.append(_dice_scores(cut, truth, view.values))
-                    said.append(_signals(view, probabilities, nodes, cut))
-                scores[key], signals[key] = float(np.mean(values)), said
+                    return (
+                        _dice_scores(cut, truth, view.values),
+                        _signals(view, probabilities, nodes, cut),
+                    )
+
+                # the cases' cuts on n_jobs threads (max-flow and sparse algebra drop the GIL)
+                values, said = zip(*thread_map(judged, held, self.n_jobs), strict=True)
+                scores[key], signals[key] = float(np.mean(values)), list(said)
             return max(scores, key=scores.get)
 
         pairs = [(float(s), float(w)) for s, w in product(self.smoothness, self.shape_weight)]
