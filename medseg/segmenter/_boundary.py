@@ -295,6 +295,8 @@ class BoundaryStage:
         there (the atlases then keep their images in the frame).
     random_state : int, RandomState or None
     n_jobs : int, default 1
+        Threads of the classifiers (fit and scoring) and of the validation cuts of
+        :meth:`fit`; the stage and its labels do not depend on it.
 
     Attributes
     ----------

@@ -171,8 +171,11 @@ class ShapePriorSegmenter(BaseEstimator):
     random_state : int, Generator, RandomState or None
         Seeds every stochastic step; the same seed gives the same model.
     n_jobs : int, default 1
-        Parallel jobs for the correspondence of the training shapes (processes) and the
-        forests (threads); the model does not depend on it.
+        Parallel jobs: processes for the correspondence of the training shapes; threads for
+        the forests (training, and scoring: :meth:`segment` gives it to the detector and
+        the regional stage) and for the regional stage's validation cuts. Neither the model
+        nor a segmentation depends on it, to the bit. On the hippocampus (2 cores) a case
+        takes about 0.9 times as long on 2 threads as on one.
     memory_limit_gb : float or None, default None
         Memory (GiB) one image may take in :meth:`fit` and :meth:`segment`; the estimate is
         checked before the work starts and a larger one is refused with
