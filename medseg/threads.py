@@ -11,6 +11,7 @@ collected in order, so results do not depend on the number of threads.
 from __future__ import annotations
 
 import functools
+import os
 from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor
 from typing import TypeVar
@@ -34,9 +35,11 @@ def thread_map(function: Callable[[T], R], items: Iterable[T], n_jobs: int | Non
     workers = min(effective_n_jobs(n_jobs), len(items))
     if workers <= 1:
         return [function(item) for item in items]
-    return list(_pool(workers).map(function, items))
+    return list(_pool(workers, os.getpid()).map(function, items))
 
 
 @functools.cache
-def _pool(workers: int) -> ThreadPoolExecutor:
+def _pool(workers: int, pid: int) -> ThreadPoolExecutor:
+    """``workers`` threads of the process ``pid``: a forked child makes its own (it inherits
+    the parent's pool object but none of its threads, and would wait on it forever)."""
     return ThreadPoolExecutor(max_workers=workers, thread_name_prefix="medseg")

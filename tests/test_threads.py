@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import multiprocessing
+import sys
 import threading
 import time
 
@@ -39,3 +41,23 @@ def test_an_error_in_one_item_reaches_the_caller():
 
     with pytest.raises(ValueError, match="item 2"):
         thread_map(fails_on_two, range(4), 2)
+
+
+def _square_on_two_threads(queue) -> None:
+    queue.put(thread_map(lambda i: i * i, range(4), 2))
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="fork start method")
+def test_a_forked_child_gets_threads_of_its_own():
+    """The parent's pool is in use before the fork; the child's thread_map still finishes
+    (with the parent's pool object it would wait forever on threads it does not have)."""
+    assert thread_map(lambda i: i, range(4), 2) == [0, 1, 2, 3]
+    context = multiprocessing.get_context("fork")
+    queue = context.Queue()
+    child = context.Process(target=_square_on_two_threads, args=(queue,))
+    child.start()
+    child.join(timeout=60)
+    if child.is_alive():
+        child.kill()
+        pytest.fail("thread_map in a forked child hung")
+    assert queue.get(timeout=5) == [0, 1, 4, 9]
