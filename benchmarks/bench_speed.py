@@ -109,7 +109,7 @@ def _per_case(model_dir: Path, cohort, cases: list[int], jobs: int) -> dict:
 
     model = load_model(model_dir)
     images = [cohort[i].load_image() for i in cases]
-    runs = {threads: ([], {}) for threads in dict.fromkeys((1, jobs))}
+    runs = {threads: ([], {}) for threads in (1, jobs)}  # one entry when jobs is 1
     for threads in runs:  # warm-up: first-call costs (imports, caches, the thread pool)
         model.n_jobs = threads
         model.segment(images[0])
