@@ -182,28 +182,31 @@ class _Reduced:
     slack: float  # total of the (tolerated, tiny) submodularity violations set to zero
 
 
-def _reduce(u: np.ndarray, e: np.ndarray, p: np.ndarray) -> _Reduced:
+def _reduce(d: np.ndarray, e: np.ndarray, a, b, c, dd) -> _Reduced:
     """Kolmogorov-Zabih reparametrisation of checked arrays; refuses non-submodular terms.
 
-    ``E(a, b) = A + (C - A) a + (D - C) b + (B + C - A - D) (1 - a) b`` with ``A..D = E00,
-    E01, E10, E11``: two unary parts and one term paid when ``x_i = 0, x_j = 1``, i.e. by the
-    capacity ``j -> i`` (j on the source side, i on the sink side).
+    ``d`` is each node's cost of label 1 minus its cost of label 0, ``a, b, c, dd`` the
+    edges' ``E00, E01, E10, E11``. ``E(a, b) = A + (C - A) a + (D - C) b + (B + C - A - D)
+    (1 - a) b`` with ``A..D = E00, E01, E10, E11``: two unary parts and one term paid when
+    ``x_i = 0, x_j = 1``, i.e. by the capacity ``j -> i`` (j on the source side, i on the
+    sink side).
     """
-    n = u.shape[0]
-    a, b, c, dd = p.T
+    n = d.shape[0]
     lam = b + c - a - dd
-    tol = _SUBMODULAR_RTOL * np.abs(p).sum(axis=1)
-    bad = np.flatnonzero(lam < -tol)
-    if bad.size:
-        k = int(bad[0])
-        raise ParameterError(
-            f"pairwise term {k} on edge {tuple(e[k].tolist())} is not submodular: "
-            f"E00 + E11 = {a[k] + dd[k]:.6g} > E01 + E10 = {b[k] + c[k]:.6g} "
-            f"({bad.size} such terms); graph cuts minimise submodular energies only"
-        )
-    slack = float(np.sum(np.maximum(-lam, 0.0)))
-    lam = np.maximum(lam, 0.0)
-    d = u[:, 1] - u[:, 0]
+    negative = np.flatnonzero(lam < 0)  # the tolerance is only looked up where it can matter
+    slack = 0.0
+    if negative.size:
+        size = np.abs(a) + np.abs(b) + np.abs(c) + np.abs(dd)
+        bad = negative[lam[negative] < -_SUBMODULAR_RTOL * size[negative]]
+        if bad.size:
+            k = int(bad[0])
+            raise ParameterError(
+                f"pairwise term {k} on edge {tuple(e[k].tolist())} is not submodular: "
+                f"E00 + E11 = {a[k] + dd[k]:.6g} > E01 + E10 = {b[k] + c[k]:.6g} "
+                f"({bad.size} such terms); graph cuts minimise submodular energies only"
+            )
+        slack = float(np.sum(np.maximum(-lam, 0.0)))
+        lam = np.maximum(lam, 0.0)
     d = d + np.bincount(e[:, 0], weights=c - a, minlength=n)
     d = d + np.bincount(e[:, 1], weights=dd - c, minlength=n)
     if not np.isfinite(d).all():
@@ -240,8 +243,8 @@ def _quantise(r: _Reduced) -> _Network | None:
     src, snk = np.maximum(-r.d, 0.0), np.maximum(r.d, 0.0)
     out_f, in_f = pair.sum(axis=1), pair.sum(axis=0)
     terminal = np.maximum(np.minimum(src, out_f), np.minimum(snk, in_f))
-    both_ways = (pair + pair.T).tocsr()
-    largest = max(float(both_ways.data.max()), float(terminal.max()))
+    one_way = _one_way(pair)
+    largest = max(_largest_both_ways(pair, one_way), float(terminal.max()))
     scale = min(_CAPACITY_LIMIT / largest, 1e290)
 
     q_pair = np.rint(pair.data * scale)
@@ -251,19 +254,59 @@ def _quantise(r: _Reduced) -> _Network | None:
     q_src, err_src = _terminal(src, out_q, scale)
     q_snk, err_snk = _terminal(snk, in_q, scale)
 
-    coo = pair_q.tocoo()
-    nodes = np.arange(n)
-    rows = np.concatenate([coo.row, np.full(n, n), nodes])
-    cols = np.concatenate([coo.col, nodes, np.full(n, n + 1)])
-    data = np.concatenate([coo.data, q_src, q_snk])
-    keep = data > 0
-    widest = max(int(data.max()), int((pair_q + pair_q.T).max()))
+    widest = max(int(q_src.max()), int(q_snk.max()), int(_largest_both_ways(pair_q, one_way)))
     if widest > _INT32_MAX:  # only with ~2**30 edges at one node
         raise ParameterError(f"capacities do not fit int32 after scaling (largest {widest})")
-    capacity = sparse.coo_array(
-        (data[keep].astype(np.int32), (rows[keep], cols[keep])), shape=(n + 2, n + 2)
-    ).tocsr()
+    capacity = _network_csr(pair_q, q_src, q_snk)
     return _Network(capacity=capacity, bound=2.0 * (err + err_src + err_snk) + r.slack)
+
+
+def _network_csr(pair_q: sparse.csr_array, q_src: np.ndarray, q_snk: np.ndarray):
+    """The (n + 2) x (n + 2) int32 capacities in canonical CSR, assembled directly.
+
+    Node i's row holds its positive edge capacities (``pair_q``'s row, columns ascending)
+    and then its edge to the sink ``n + 1``; the source ``n``'s row its edges to the nodes;
+    the sink's row is empty. The same matrix as building it from coordinates, without
+    their sort.
+    """
+    n = pair_q.shape[0]
+    keep = pair_q.data > 0
+    rows = np.repeat(np.arange(n), np.diff(pair_q.indptr))[keep]
+    to_sink = q_snk > 0
+    per_row = np.bincount(rows, minlength=n) + to_sink
+    from_source = np.flatnonzero(q_src > 0)
+    indptr = np.zeros(n + 3, dtype=np.int32)  # int32 indices: what the max-flow works in
+    np.cumsum(per_row, out=indptr[1 : n + 1])
+    indptr[n + 1] = indptr[n] + from_source.size
+    indptr[n + 2] = indptr[n + 1]
+    indices = np.empty(int(indptr[-1]), dtype=np.int32)
+    data = np.empty(int(indptr[-1]), dtype=np.int32)
+    # entries of earlier rows' sink edges shift a row's edges to the right
+    earlier = np.concatenate([[0], np.cumsum(to_sink)[:-1]])
+    at = np.arange(rows.size) + earlier[rows]
+    indices[at] = pair_q.indices[keep]
+    data[at] = pair_q.data[keep]
+    last = indptr[1 : n + 1][to_sink] - 1
+    indices[last] = n + 1
+    data[last] = q_snk[to_sink]
+    indices[indptr[n] : indptr[n + 1]] = from_source
+    data[indptr[n] : indptr[n + 1]] = q_src[from_source]
+    return sparse.csr_array((data, indices, indptr), shape=(n + 2, n + 2))
+
+
+def _one_way(pair: sparse.csr_array) -> bool:
+    """True when no entry of ``pair`` has its transpose: all strictly below the diagonal, or
+    all above (every edge given as (lower, upper) node, as grids and expansion moves do)."""
+    rows = np.repeat(np.arange(pair.shape[0]), np.diff(pair.indptr))
+    return bool(np.all(pair.indices < rows) or np.all(pair.indices > rows))
+
+
+def _largest_both_ways(pair: sparse.csr_array, one_way: bool) -> float:
+    """The largest entry of ``pair + pair.T``: with ``one_way`` the largest of ``pair``'s own
+    (each entry meets only a zero), without the sparse sum and its transpose."""
+    if one_way:
+        return pair.data.max()
+    return (pair + pair.T).tocsr().data.max()
 
 
 def _terminal(strength: np.ndarray, opposing: np.ndarray, scale: float) -> tuple[np.ndarray, float]:
@@ -315,12 +358,18 @@ def minimize_binary(unary: ArrayLike, edges: ArrayLike, pairwise: ArrayLike) -> 
 
 
 def _minimum(u: np.ndarray, e: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """:func:`minimize_binary` of arrays already checked (or built valid, as a move's are)."""
-    r = _reduce(u, e, p)
+    """:func:`minimize_binary` of checked arrays."""
+    return _minimum_terms(u[:, 1] - u[:, 0], e, *p.T)
+
+
+def _minimum_terms(d: np.ndarray, e: np.ndarray, a, b, c, dd) -> np.ndarray:
+    """:func:`minimize_binary` from the label-1-minus-label-0 unary difference ``d`` and the
+    edges' four terms, already valid (checked, or built valid, as a move's are)."""
+    r = _reduce(d, e, a, b, c, dd)
     net = _quantise(r)
     if net is None:
         return r.d < 0
-    n = u.shape[0]
+    n = d.shape[0]
     return _min_cut_source_side(net.capacity, n, n + 1)[:n]
 
 
@@ -336,7 +385,7 @@ def binary_cut_bound(unary: ArrayLike, edges: ArrayLike, pairwise: ArrayLike) ->
     the costs themselves comes on top.
     """
     u, e, p = _check_binary(unary, edges, pairwise)
-    r = _reduce(u, e, p)
+    r = _reduce(u[:, 1] - u[:, 0], e, *p.T)
     net = _quantise(r)
     return r.slack if net is None else float(net.bound)
 
@@ -397,13 +446,11 @@ def _expansion_move(
     stay = stay + np.bincount(index[j[lone_j]], weights=both_keep[lone_j], minlength=where.size)
     move = move + np.bincount(index[j[lone_j]], weights=j_moves[lone_j], minlength=where.size)
     pair = free[i] & free[j]
-    table = np.stack(
-        [both_keep[pair], j_moves[pair], i_moves[pair], np.zeros(int(pair.sum()))], axis=1
-    )
     edges = np.stack([index[i[pair]], index[j[pair]]], axis=1)
     # valid by construction (finite costs: the labels kept and alpha are allowed; edges
     # between distinct free nodes), so the checks of the public entry are skipped
-    switch = _minimum(np.stack([stay, move], axis=1), edges, table)
+    terms = both_keep[pair], j_moves[pair], i_moves[pair], np.zeros(edges.shape[0])
+    switch = _minimum_terms(move - stay, edges, *terms)
     g = f.copy()
     g[where[switch]] = alpha
     return g
