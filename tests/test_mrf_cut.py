@@ -433,3 +433,64 @@ def test_grid_cut_separates_two_regions():
     assert binary_energy(unary, edges, potts_binary_terms(2.0 * lengths), x) <= binary_energy(
         unary, edges, potts_binary_terms(2.0 * lengths), truth.ravel()
     ) + binary_cut_bound(unary, edges, potts_binary_terms(2.0 * lengths))
+
+
+# ---------------------------------------------------------------------------------------
+# the s-t network
+
+
+def coordinates_network(pair_q, q_src, q_snk):
+    """The capacities built from coordinates and summed by SciPy (the reference)."""
+    from scipy import sparse
+
+    n = pair_q.shape[0]
+    coo = pair_q.tocoo()
+    nodes = np.arange(n)
+    rows = np.concatenate([coo.row, np.full(n, n), nodes])
+    cols = np.concatenate([coo.col, nodes, np.full(n, n + 1)])
+    data = np.concatenate([coo.data, q_src, q_snk])
+    keep = data > 0
+    shape = (n + 2, n + 2)
+    return sparse.coo_array((data[keep], (rows[keep], cols[keep])), shape=shape).tocsr()
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_network_is_the_coordinates_one(seed):
+    # integer edge capacities with zeros among them (rounded to nothing), nodes without a
+    # terminal edge, the source and sink rows: the direct assembly against SciPy's
+    from scipy import sparse
+
+    from medseg.mrf._cut import _network_csr
+
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(5, 40))
+    dense = rng.integers(0, 4, size=(n, n)) * (rng.random((n, n)) < 0.3)
+    np.fill_diagonal(dense, 0)
+    pair_q = sparse.csr_array(dense.astype(np.int64))
+    pair_q.data[::3] = 0  # stored zeros, as rounding leaves them
+    q_src = rng.integers(0, 5, n) * (rng.random(n) < 0.6)
+    q_snk = rng.integers(0, 5, n) * (rng.random(n) < 0.6)
+    capacity = _network_csr(pair_q, q_src, q_snk)
+    reference = coordinates_network(pair_q, q_src, q_snk)
+    assert capacity.dtype == np.int32 and capacity.shape == reference.shape
+    for attribute in ("indptr", "indices", "data"):
+        np.testing.assert_array_equal(getattr(capacity, attribute), getattr(reference, attribute))
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_largest_two_way_capacity(seed):
+    # edges given once, lower -> upper (a grid's), take the short cut; with duplicate and
+    # reversed edges the pair's two directions add up: both as SciPy's sum with its transpose
+    from medseg.mrf import _cut
+
+    rng = np.random.default_rng(seed)
+    for extra, one_way in ((0, True), (8, False)):
+        unary, edges, pairwise = tiny_grid_problem(rng, shape=(3, 3, 4), extra=extra)
+        if one_way:
+            edges, pairwise = edges[:-5], pairwise[:-5]  # no repeated or reversed edges
+        else:  # grid edges 3 and 4 and their reversed copies: the two-way sum is largest
+            pairwise[[3, 4, -2, -1]] = [0.0, 10.0, 10.0, 0.0]
+        reduced = _cut._reduce(unary[:, 1] - unary[:, 0], edges, *pairwise.T)
+        assert _cut._one_way(reduced.pair) == one_way
+        expected = (reduced.pair + reduced.pair.T).tocsr().data.max()
+        assert _cut._largest_both_ways(reduced.pair, one_way) == expected
