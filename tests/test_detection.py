@@ -625,3 +625,5 @@ def test_forests_score_as_scikit_learn_does_on_one_job_whatever_the_threads(fitt
             assert 0.0 < expected[:, 1].max() and expected[:, 1].min() < 1.0  # not constant
         finally:
             forest.n_jobs = saved
+    with pytest.raises(ValueError, match="features"):  # checked once, not per tree
+        forest_proba(fitted.forests_[0], rows[:, :-1])

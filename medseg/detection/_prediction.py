@@ -223,10 +223,21 @@ def forest_proba(forest, X: np.ndarray) -> np.ndarray:
 
 
 def _tree_sum(forest, X: np.ndarray) -> np.ndarray:
-    """The forest's probabilities of the float32 rows ``X``, its trees summed in order."""
+    """The forest's probabilities of the float32 rows ``X``, its trees summed in order.
+
+    Each tree's probabilities are its leaves' stored class fractions, looked up for the
+    leaf every row reaches: what ``predict_proba`` returns, to the bit, without its
+    per-call checks and its copy of every node's values (together more than half of its
+    time on a few thousand rows).
+    """
+    if X.shape[1] != forest.n_features_in_:
+        raise ValueError(
+            f"X has {X.shape[1]} features, but the forest expects {forest.n_features_in_}"
+        )
     total = np.zeros((X.shape[0], forest.n_classes_), dtype=np.float64)
     for tree in forest.estimators_:
-        total += tree.predict_proba(X, check_input=False)
+        nodes = tree.tree_
+        total += np.take(nodes.value[:, 0, : tree.n_classes_], nodes.apply(X), axis=0)
     total /= len(forest.estimators_)
     return total
 
