@@ -275,6 +275,8 @@ def _network_csr(pair_q: sparse.csr_array, q_src: np.ndarray, q_snk: np.ndarray)
     to_sink = q_snk > 0
     per_row = np.bincount(rows, minlength=n) + to_sink
     from_source = np.flatnonzero(q_src > 0)
+    if rows.size + int(to_sink.sum()) + from_source.size > _INT32_MAX:
+        raise ParameterError("the network has more edges than SciPy's max-flow can index")
     indptr = np.zeros(n + 3, dtype=np.int32)  # int32 indices: what the max-flow works in
     np.cumsum(per_row, out=indptr[1 : n + 1])
     indptr[n + 1] = indptr[n] + from_source.size
