@@ -470,7 +470,8 @@ def test_network_is_the_coordinates_one(seed):
     pair_q.data[::3] = 0  # stored zeros, as rounding leaves them
     q_src = rng.integers(0, 5, n) * (rng.random(n) < 0.6)
     q_snk = rng.integers(0, 5, n) * (rng.random(n) < 0.6)
-    capacity = _network_csr(pair_q, q_src, q_snk)
+    rows = np.repeat(np.arange(n), np.diff(pair_q.indptr))
+    capacity = _network_csr(pair_q, rows, q_src, q_snk)
     reference = coordinates_network(pair_q, q_src, q_snk)
     assert capacity.dtype == np.int32 and capacity.shape == reference.shape
     for attribute in ("indptr", "indices", "data"):
@@ -491,6 +492,8 @@ def test_largest_two_way_capacity(seed):
         else:  # grid edges 3 and 4 and their reversed copies: the two-way sum is largest
             pairwise[[3, 4, -2, -1]] = [0.0, 10.0, 10.0, 0.0]
         reduced = _cut._reduce(unary[:, 1] - unary[:, 0], edges, *pairwise.T)
-        assert _cut._one_way(reduced.pair) == one_way
+        pair = reduced.pair
+        rows = np.repeat(np.arange(pair.shape[0]), np.diff(pair.indptr))
+        assert _cut._one_way(rows, pair.indices) == one_way
         expected = (reduced.pair + reduced.pair.T).tocsr().data.max()
         assert _cut._largest_both_ways(reduced.pair, one_way) == expected

@@ -243,7 +243,8 @@ def _quantise(r: _Reduced) -> _Network | None:
     src, snk = np.maximum(-r.d, 0.0), np.maximum(r.d, 0.0)
     out_f, in_f = pair.sum(axis=1), pair.sum(axis=0)
     terminal = np.maximum(np.minimum(src, out_f), np.minimum(snk, in_f))
-    one_way = _one_way(pair)
+    rows = np.repeat(np.arange(n), np.diff(pair.indptr))  # each entry's row, as in pair_q
+    one_way = _one_way(rows, pair.indices)
     largest = max(_largest_both_ways(pair, one_way), float(terminal.max()))
     scale = min(_CAPACITY_LIMIT / largest, 1e290)
 
@@ -257,21 +258,21 @@ def _quantise(r: _Reduced) -> _Network | None:
     widest = max(int(q_src.max()), int(q_snk.max()), int(_largest_both_ways(pair_q, one_way)))
     if widest > _INT32_MAX:  # only with ~2**30 edges at one node
         raise ParameterError(f"capacities do not fit int32 after scaling (largest {widest})")
-    capacity = _network_csr(pair_q, q_src, q_snk)
+    capacity = _network_csr(pair_q, rows, q_src, q_snk)
     return _Network(capacity=capacity, bound=2.0 * (err + err_src + err_snk) + r.slack)
 
 
-def _network_csr(pair_q: sparse.csr_array, q_src: np.ndarray, q_snk: np.ndarray):
+def _network_csr(pair_q: sparse.csr_array, rows: np.ndarray, q_src: np.ndarray, q_snk):
     """The (n + 2) x (n + 2) int32 capacities in canonical CSR, assembled directly.
 
     Node i's row holds its positive edge capacities (``pair_q``'s row, columns ascending)
     and then its edge to the sink ``n + 1``; the source ``n``'s row its edges to the nodes;
     the sink's row is empty. The same matrix as building it from coordinates, without
-    their sort.
+    their sort. ``rows`` holds the row of each of ``pair_q``'s stored entries.
     """
     n = pair_q.shape[0]
     keep = pair_q.data > 0
-    rows = np.repeat(np.arange(n), np.diff(pair_q.indptr))[keep]
+    rows = rows[keep]
     to_sink = q_snk > 0
     per_row = np.bincount(rows, minlength=n) + to_sink
     from_source = np.flatnonzero(q_src > 0)
@@ -296,11 +297,11 @@ def _network_csr(pair_q: sparse.csr_array, q_src: np.ndarray, q_snk: np.ndarray)
     return sparse.csr_array((data, indices, indptr), shape=(n + 2, n + 2))
 
 
-def _one_way(pair: sparse.csr_array) -> bool:
-    """True when no entry of ``pair`` has its transpose: all strictly below the diagonal, or
-    all above (every edge given as (lower, upper) node, as grids and expansion moves do)."""
-    rows = np.repeat(np.arange(pair.shape[0]), np.diff(pair.indptr))
-    return bool(np.all(pair.indices < rows) or np.all(pair.indices > rows))
+def _one_way(rows: np.ndarray, columns: np.ndarray) -> bool:
+    """True when no stored entry (``rows``, ``columns``) has its transpose: all strictly below
+    the diagonal, or all above (every edge given as (lower, upper) node, as grids and
+    expansion moves do)."""
+    return bool(np.all(columns < rows) or np.all(columns > rows))
 
 
 def _largest_both_ways(pair: sparse.csr_array, one_way: bool) -> float:
@@ -356,11 +357,7 @@ def minimize_binary(unary: ArrayLike, edges: ArrayLike, pairwise: ArrayLike) -> 
         minimum by at most :func:`binary_cut_bound`. Ties go to label 0. Without edges the
         result is the per-node argmin and exact.
     """
-    return _minimum(*_check_binary(unary, edges, pairwise))
-
-
-def _minimum(u: np.ndarray, e: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """:func:`minimize_binary` of checked arrays."""
+    u, e, p = _check_binary(unary, edges, pairwise)
     return _minimum_terms(u[:, 1] - u[:, 0], e, *p.T)
 
 
