@@ -379,22 +379,47 @@ def test_cohort_landmarks_computed_from_labels_when_absent(pair_result):
     np.testing.assert_allclose(out, res.landmarks)
 
 
-def test_cpd_recovers_a_smooth_warp_of_a_shuffled_point_set():
-    """The non-rigid registration behind the correspondence, alone: the source moves onto
-    its warped, reordered copy, and the E-step stays finite when most of its exponents are
-    far below the floor where exp underflows (a sharp fit, sigma2 small)."""
-    rng = np.random.default_rng(4)
+def _warped_shuffled_copy(seed: int):
+    """Points in a ball, a smooth warp of them (0.15 at most) and the warped points shuffled."""
+    rng = np.random.default_rng(seed)
     y = rng.normal(size=(400, 3))
     y /= np.linalg.norm(y, axis=1, keepdims=True)
     y *= rng.uniform(0.5, 1.0, size=(400, 1))
     shift = 0.15 * np.stack([np.sin(2 * y[:, 2]), np.cos(2 * y[:, 0]), np.sin(2 * y[:, 1])], 1)
-    order = rng.permutation(len(y))
-    x = (y + shift)[order]
-    result = cpd_nonrigid(y, x, beta=1.0, lam=1.0, w=0.02, rank=40)
+    return y, shift, (y + shift)[rng.permutation(len(y))]
+
+
+def test_cpd_recovers_a_smooth_warp_of_a_shuffled_point_set():
+    """The non-rigid registration behind the correspondence, alone: the source moves onto
+    its warped, reordered copy, and the E-step stays finite when most of its exponents are
+    far below the floor where exp underflows (a sharp fit, sigma2 small)."""
+    y, shift, x = _warped_shuffled_copy(4)
+    result = cpd_nonrigid(y, x, beta=1.0, lam=1.0, w=0.02)  # the exact kernel
     before = np.linalg.norm(shift, axis=1).mean()
     after = np.linalg.norm(result.moved - (y + shift), axis=1).mean()
     assert before > 0.1
-    assert after < 0.2 * before
+    assert after < 0.01 * before  # measured: 7e-7 of it
     assert np.isfinite(result.moved).all() and 0 < result.sigma2 < 1e-3
     # the fitted field moves other points of the source frame the same way
     np.testing.assert_allclose(result.warp(y[:5]), result.moved[:5], atol=1e-9)
+
+
+def test_low_rank_cpd_recovers_most_of_a_smooth_warp():
+    """The correspondence's default, the kernel's 40 leading eigenpairs, judged over eight
+    point sets by the median of the error left (as a fraction of the warp).
+
+    On these sets it does not converge in its 150 iterations, and where it stops changes
+    with the last bit of its input: moving the source by 1e-15 took one set's remaining
+    error from 3 % to 11 %, and the one set this test used to check alone (seed 4) ended at
+    27 % on an AVX2 machine (2026-12-07) and under 20 % on the machines before. The median
+    over the eight sets was 0.086 there, 0.097 and 0.20 with the sources moved by 1e-15 and
+    1e-13; a source that does not move leaves 1.
+    """
+    left = []
+    for seed in range(8):
+        y, shift, x = _warped_shuffled_copy(seed)
+        result = cpd_nonrigid(y, x, beta=1.0, lam=1.0, w=0.02, rank=40)
+        assert np.isfinite(result.moved).all()
+        after = np.linalg.norm(result.moved - (y + shift), axis=1).mean()
+        left.append(after / np.linalg.norm(shift, axis=1).mean())
+    assert np.median(left) < 0.3
