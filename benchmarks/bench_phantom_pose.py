@@ -22,7 +22,8 @@ the expected Dice at each angle; the summary gives it with its standard error (c
 clusters) and its difference from 1 degree (resampling with hardly any rotation), paired
 by case.
 
-One JSON line per (case, angle, draw). ``--shard`` / ``--n-shards`` split the cases among
+One JSON line per (case, angle, draw); a case the segmenter refuses (``MedsegError``) scores
+Dice 0, as in ``medseg-evaluate``. ``--shard`` / ``--n-shards`` split the cases among
 processes (their files summarise together). Nothing is written into the repository.
 """
 
@@ -37,6 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from medseg.datasets import make_phantom_cohort
+from medseg.errors import MedsegError
 from medseg.evaluation.fold import _perturbation_seed
 from medseg.evaluation.folds import fold_seed, make_folds
 from medseg.evaluation.methods import default_methods
@@ -94,13 +96,17 @@ def run(args) -> None:
                         moved, moved_labels, *_ = perturb_condition(
                             condition, image, labels, random_state=seed
                         )
-                        result = model.segment(moved)
+                        try:
+                            dice = score_segmentation(model.segment(moved).label, moved_labels).dice
+                        except MedsegError as exc:  # as medseg-evaluate: a failure is Dice 0
+                            print(f"{case.case_id} {condition} #{draw}: {exc}", file=sys.stderr)
+                            dice = 0.0
                         row = {
                             "fold": fold,
                             "case": case.case_id,
                             "condition": condition,
                             "draw": draw,
-                            "dice": score_segmentation(result.label, moved_labels).dice,
+                            "dice": dice,
                         }
                         fh.write(json.dumps(row) + "\n")
                         fh.flush()
