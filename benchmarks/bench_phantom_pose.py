@@ -70,6 +70,17 @@ def _condition_seed(seed: int, case_id: str, condition: str, draw: int) -> int:
     return _perturbation_seed(seed, case_id, name)
 
 
+def _dice(model, image, labels, condition: str, seed: int) -> float:
+    """Dice of ``model`` on the case under ``condition`` (0 when it refuses the case, as in
+    ``medseg-evaluate``)."""
+    moved, moved_labels, *_ = perturb_condition(condition, image, labels, random_state=seed)
+    try:
+        return score_segmentation(model.segment(moved).label, moved_labels).dice
+    except MedsegError as exc:
+        print(f"{condition} (seed {seed}): {exc}", file=sys.stderr)
+        return 0.0
+
+
 def run(args) -> None:
     cohort = make_phantom_cohort(N_SUBJECTS, random_state=args.seed)
     conditions = ["acquired"] + [f"rot{a:g}" for a in args.angles]
@@ -93,20 +104,12 @@ def run(args) -> None:
                         if (case.case_id, condition, draw) in done:
                             continue
                         seed = _condition_seed(args.seed, case.case_id, condition, draw)
-                        moved, moved_labels, *_ = perturb_condition(
-                            condition, image, labels, random_state=seed
-                        )
-                        try:
-                            dice = score_segmentation(model.segment(moved).label, moved_labels).dice
-                        except MedsegError as exc:  # as medseg-evaluate: a failure is Dice 0
-                            print(f"{case.case_id} {condition} #{draw}: {exc}", file=sys.stderr)
-                            dice = 0.0
                         row = {
                             "fold": fold,
                             "case": case.case_id,
                             "condition": condition,
                             "draw": draw,
-                            "dice": dice,
+                            "dice": _dice(model, image, labels, condition, seed),
                         }
                         fh.write(json.dumps(row) + "\n")
                         fh.flush()
