@@ -182,8 +182,9 @@ def _as_older_version(saved: Path, folder: Path, version: int) -> Path:
     old = Path(shutil.copytree(saved, folder))
     meta = json.loads((old / "model.json").read_text(encoding="utf-8"))
     stage = sorted(str(p.relative_to(saved)) for p in (saved / "boundary").iterdir())
-    dropped = {5: ([], ["hypothesis_quantile"])}
-    dropped[4] = (stage, dropped[5][1] + ["boundary"])
+    dropped = {6: (["appearance.npz"], ["appearance_check"])}
+    dropped[5] = (dropped[6][0], dropped[6][1] + ["hypothesis_quantile"])
+    dropped[4] = (dropped[5][0] + stage, dropped[5][1] + ["boundary"])
     dropped[3] = (dropped[4][0] + ["frame.npz"], dropped[4][1] + ["frame_passes", "augment_poses"])
     dropped[2] = (
         dropped[3][0] + ["shape_model.npz"],
@@ -199,7 +200,7 @@ def _as_older_version(saved: Path, folder: Path, version: int) -> Path:
         meta["checksums"].pop(name)
     if (old / "boundary").is_dir() and version < 5:
         (old / "boundary").rmdir()
-    if (old / "shape_model.npz").is_file():  # before version 6: no training costs
+    if version < 6 and (old / "shape_model.npz").is_file():  # before 6: no training costs
         header, arrays = load_arrays(old / "shape_model.npz", what="test")
         del arrays["training_costs"]
         save_arrays(old / "shape_model.npz", arrays, header=header | {"format_version": 1})
@@ -219,11 +220,14 @@ def test_older_model_versions_still_load_and_run_without_their_missing_parts(
 ):
     loaded = load_model(_as_older_version(saved, tmp_path / "old", version))
     assert loaded.boundary_ is None and not loaded.boundary and not loaded._uses_boundary()
+    assert loaded.appearance_ is None
+    same = copy.copy(fitted)  # the same model without the parts that version lacks
+    same.appearance_check = False
     if version == 4:
         assert loaded.frame_ is not None and loaded.augment_poses == fitted.augment_poses
         image = cohort[6].load_image()
         seg = loaded.segment(image)
-        np.testing.assert_array_equal(seg.landmarks, fitted.segment(image).landmarks)
+        np.testing.assert_array_equal(seg.landmarks, same.segment(image).landmarks)
         np.testing.assert_array_equal(  # the template warped onto the landmarks
             sitk.GetArrayFromImage(seg.label), sitk.GetArrayFromImage(seg.shape_label)
         )
@@ -238,7 +242,6 @@ def test_older_model_versions_still_load_and_run_without_their_missing_parts(
     assert (loaded.orientation_ is None) == (version == 1)
     assert loaded.augment_poses == 0  # its detectors were trained without posed copies
     image = cohort[6].load_image()
-    same = copy.copy(fitted)  # the same model without the parts that version lacks
     same.frame_passes = 0
     if version < 3:
         same.refine_levels = 0
@@ -258,13 +261,31 @@ def test_a_version_5_model_solves_every_hypothesis_as_before(fitted, saved, coho
     assert loaded.boundary_ is not None and loaded.hypothesis_quantile == 0.9  # the default
     always = copy.copy(fitted)
     always.hypothesis_quantile = None
+    always.appearance_check = False  # a version 5 model has no appearance check
     image = cohort[6].load_image()
     seg, expected = loaded.segment(image), always.segment(image)
     assert len(seg.hypotheses) == len(expected.hypotheses)
     np.testing.assert_array_equal(seg.landmarks, expected.landmarks)
     again = loaded.save(tmp_path / "again")
     assert json.loads((again / "model.json").read_text(encoding="utf-8"))["format_version"] == 5
-    assert json.loads((saved / "model.json").read_text(encoding="utf-8"))["format_version"] == 6
+    assert json.loads((saved / "model.json").read_text(encoding="utf-8"))["format_version"] == 7
+
+
+def test_a_version_6_model_loads_without_the_appearance_check(fitted, saved, cohort, tmp_path):
+    loaded = load_model(_as_older_version(saved, tmp_path / "v6", 6))
+    assert loaded.appearance_ is None and not loaded._uses_appearance()
+    assert loaded.appearance_check  # the default, which a model without the check ignores
+    unchecked = copy.copy(fitted)
+    unchecked.appearance_check = False
+    image = cohort[6].load_image()
+    seg, expected = loaded.segment(image), unchecked.segment(image)
+    assert seg.appearance is None and expected.appearance is None
+    np.testing.assert_array_equal(seg.landmarks, expected.landmarks)
+    again = loaded.save(tmp_path / "again")
+    assert json.loads((again / "model.json").read_text(encoding="utf-8"))["format_version"] == 6
+    checked = fitted.segment(image).appearance
+    assert checked is not None and checked["threshold"] == fitted.appearance_.threshold_
+    assert checked["searched"] == (checked["score"] < checked["threshold"])
 
 
 def test_further_hypotheses_only_when_the_optimum_fits_worse_than_the_training_shapes(
@@ -273,6 +294,7 @@ def test_further_hypotheses_only_when_the_optimum_fits_worse_than_the_training_s
     image = cohort[6].load_image()
     always = copy.copy(fitted)
     always.hypothesis_quantile = None
+    always.appearance_check = False  # the hypotheses' landmarks, as the MRF chose them
     full = always.segment(image)
     first = full.hypotheses[0]
     assert len(full.hypotheses) > 1
@@ -281,6 +303,7 @@ def test_further_hypotheses_only_when_the_optimum_fits_worse_than_the_training_s
         model = copy.copy(fitted)
         model.shape_model_ = copy.copy(fitted.shape_model_)
         model.shape_model_.training_costs_ = np.asarray(costs, dtype=float)
+        model.appearance_check = False
         return model
 
     # the refined optimum fits as well as the training shapes: kept alone
@@ -318,6 +341,8 @@ def test_current_model_without_one_of_its_files_is_incomplete(saved, tmp_path, n
 
 def test_refinement_keeps_the_mrf_solution_that_fits_the_image_best(fitted, cohort):
     image = cohort[6].load_image()
+    fitted = copy.copy(fitted)
+    fitted.appearance_check = False  # the landmarks as the hypotheses left them
     seg = fitted.segment(image)
     n = seg.candidates.positions.shape[0]
     first, *others = seg.hypotheses

@@ -15,6 +15,7 @@ using pose-invariant higher-order graphs", MICCAI 2010. doi:10.1007/978-3-642-15
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -33,9 +34,15 @@ from medseg.memory import memory_limit_bytes
 from medseg.mrf import DEFAULT_MAX_BYTES, MRF, solve
 from medseg.reconstruction import warp_labels, warp_surface
 from medseg.segmenter import _memory, _persistence
+from medseg.segmenter._appearance import FrameAppearance
 from medseg.segmenter._boundary import BoundaryStage
 from medseg.segmenter._frame_pass import in_frame_passes
-from medseg.segmenter._hypotheses import check_not_collapsed, margin, refined_hypotheses
+from medseg.segmenter._hypotheses import (
+    check_not_collapsed,
+    collapsed,
+    margin,
+    refined_hypotheses,
+)
 from medseg.segmenter._result import Hypothesis, Located, Segmentation
 from medseg.shape import ActiveShapeModel, OrientationPrior, TripletPrior
 
@@ -125,6 +132,17 @@ class ShapePriorSegmenter(BaseEstimator):
         upright, at its mean size, in a training-like field of view. The frame comes from
         the pose-free solution, so the result stays pose free while the detectors and the
         search see the structure as in training. 0 is the paper's single pass.
+    appearance_check : bool, default True
+        After the refinement, compare the image near the found landmarks, seen in the
+        shape's frame, with the training images seen in theirs
+        (:class:`~medseg.segmenter.FrameAppearance`): below what held-out training images
+        reach (its 5 % quantile), register the image onto their mean from the found frame
+        turned every way, refine the reference shape carried through the best registration,
+        and keep it when it correlates better with the mean, over the frame's box and near
+        the shape. The similarity-invariant prior cannot tell the shape from the shape
+        turned about itself onto the same surface (on the phantom the cause of most
+        failures); the image around it can. False keeps the refined MRF solution as it is
+        (as do models saved before format version 7).
     boundary : bool, default True
         The regional stage (:class:`~medseg.segmenter.BoundaryStage`): in the shape's
         frame, a voxel classifier and a graph cut move the warped template's boundary (and
@@ -199,6 +217,9 @@ class ShapePriorSegmenter(BaseEstimator):
     frame_ : ShapeFrame or None
         The shape's frame, fitted on ``landmarks_`` and the training images; None for a
         model saved before it existed (format versions 1-3), which then runs one pass.
+    appearance_ : FrameAppearance or None
+        The training images' mean in the frame and their held-out correlations with it
+        (``appearance_check``); None for a model saved before it existed (versions 1-6).
     shape_model_ : ActiveShapeModel or None
         The refining active shape model, fitted on ``landmarks_``; None for a model saved
         before it existed (format versions 1 and 2).
@@ -225,6 +246,7 @@ class ShapePriorSegmenter(BaseEstimator):
         n_hypotheses: int = 4,
         hypothesis_quantile: float | None = 0.9,
         frame_passes: int = 0,
+        appearance_check: bool = True,
         boundary: bool = True,
         landmark_noise_mm: float = 1.5,
         n_noise_copies: int = 10,
@@ -250,6 +272,7 @@ class ShapePriorSegmenter(BaseEstimator):
         self.n_hypotheses = n_hypotheses
         self.hypothesis_quantile = hypothesis_quantile
         self.frame_passes = frame_passes
+        self.appearance_check = appearance_check
         self.boundary = boundary
         self.landmark_noise_mm = landmark_noise_mm
         self.n_noise_copies = n_noise_copies
@@ -386,6 +409,7 @@ class ShapePriorSegmenter(BaseEstimator):
         )
         timings["shape_model"] = time.perf_counter() - t0
         self.frame_ = ShapeFrame.fit(self.landmarks_, kept_images)
+        self.appearance_ = FrameAppearance().fit(self.frame_, kept_images, self.landmarks_)
         self.boundary_ = None
         if self.boundary:
             t0 = time.perf_counter()
@@ -434,6 +458,9 @@ class ShapePriorSegmenter(BaseEstimator):
             found = in_frame_passes(
                 self, image, found, n_passes=int(self.frame_passes), locate=self._locate
             )
+        appearance = None
+        if use_prior and self._uses_appearance():
+            found, appearance = self._check_appearance(image, found)
         t0 = time.perf_counter()
         shape_label = warp_labels(
             self.template_mask_,
@@ -469,6 +496,7 @@ class ShapePriorSegmenter(BaseEstimator):
             image=image,
             frame_pose=found.frame_pose,
             quality=quality,
+            appearance=appearance,
         )
 
     def _share_threads(self) -> None:
@@ -620,6 +648,34 @@ class ShapePriorSegmenter(BaseEstimator):
     def _uses_boundary(self) -> bool:
         """Whether segment runs the regional stage (a model without one cannot)."""
         return bool(self.boundary) and getattr(self, "boundary_", None) is not None
+
+    def _uses_appearance(self) -> bool:
+        """Whether segment checks the found shape's appearance (a model without the check,
+        saved before format version 7, cannot)."""
+        return bool(self.appearance_check) and getattr(self, "appearance_", None) is not None
+
+    def _check_appearance(self, image, found: Located) -> tuple[Located, dict]:
+        """``found``, or the refined registration onto the training mean when that
+        correlates better (:class:`FrameAppearance`); and what the check saw."""
+        t0 = time.perf_counter()
+        check = self.appearance_
+        score = check.score(self.frame_, image, found.landmarks)
+        seen = {"score": score, "threshold": check.threshold_, "searched": False, "replaced": False}
+        if score < check.threshold_:
+            start = check.search(self.frame_, image, found.landmarks)
+            levels = int(self.refine_levels) or None  # 0: the search's every level
+            moved = self.shape_model_.search(image, start=start, levels=levels).landmarks
+            # better over the frame's box, as the registration judged, and near the shape
+            near = check.score(self.frame_, image, moved)
+            before = check.score(self.frame_, image, found.landmarks, near=False)
+            after = check.score(self.frame_, image, moved, near=False)
+            replaced = after > before and near > score and not collapsed(moved)
+            seen |= {"searched": True, "search_score": near, "box_score": before,
+                     "search_box_score": after, "replaced": replaced}  # fmt: skip
+            if replaced:
+                found = replace(found, landmarks=moved)
+        found.timings["appearance"] = time.perf_counter() - t0
+        return found, seen
 
     def _uses_frame(self) -> bool:
         """Whether segment runs passes in the shape's frame (a model without one cannot)."""

@@ -15,6 +15,8 @@ Layout of a model folder::
     boundary/         written by BoundaryStage.save (stage.npz, classifier.npz and with
                       auto-context context.npz: the regional stage); since version 5 (a
                       model trained without the stage is written as version 4)
+    appearance.npz    written by FrameAppearance.save (the training images' mean in the
+                      shape's frame, for the appearance check); since version 7
 
 The folder is built in a staging sibling and swapped into place (``atomic_folder``), so a
 failed save leaves no half-written model. Loading verifies the format version and every checksum
@@ -23,7 +25,8 @@ before anything is deserialised.
 A model folder is untrusted input: nothing on the load path uses pickle (``allow_pickle=False``
 on every ``np.load``; skops with an explicit list of trusted types), and every archive
 (``template.npz``, ``prior.npz``, ``orientation.npz``, ``shape_model.npz``,
-``detector/**/forests.npz`` or ``forests.skops``, ``boundary/*.npz``) is checked
+``detector/**/forests.npz`` or ``forests.skops``, ``boundary/*.npz``,
+``appearance.npz``) is checked
 from its zip directory and ``.npy`` headers before it is unpacked
 (:func:`medseg.io._archive.check_archive`): an oversized, forged or malformed archive is refused
 with a :class:`ModelFileError`.
@@ -44,17 +47,19 @@ from medseg.errors import InputFileError, ModelFileError
 from medseg.frame import ShapeFrame
 from medseg.io import atomic_folder, check_format, load_arrays, save_arrays
 from medseg.io._archive import MAX_UNPACKED_BYTES, check_archive
+from medseg.segmenter._appearance import FrameAppearance
 from medseg.segmenter._boundary import BoundaryStage
 from medseg.shape import ActiveShapeModel, OrientationPrior, TripletPrior
 
 FORMAT = "medseg-shape-prior-segmenter"
-FORMAT_VERSION = 6
+FORMAT_VERSION = 7
 #: versions this medseg reads: 1 lacks the handedness term (``orientation.npz``), 1 and 2
 #: the landmark refinement (``shape_model.npz`` and the ``refine_levels`` parameter), 1-3
 #: the shape's frame (``frame.npz``, ``frame_passes``), 1-4 the regional stage
 #: (``boundary/``, ``boundary``), 1-5 the hypotheses' stopping rule
-#: (``hypothesis_quantile``; their shape model has no training costs)
-_READABLE_VERSIONS = (1, 2, 3, 4, 5, 6)
+#: (``hypothesis_quantile``; their shape model has no training costs), 1-6 the appearance
+#: check (``appearance.npz``, ``appearance_check``)
+_READABLE_VERSIONS = (1, 2, 3, 4, 5, 6, 7)
 #: format version that introduced an optional file or parameter
 _SINCE = {
     "orientation.npz": 2,
@@ -70,6 +75,8 @@ _SINCE = {
     "boundary": 5,
     "boundary/stage.npz": 5,
     "boundary/classifier.npz": 5,
+    "appearance.npz": 7,
+    "appearance_check": 7,
 }
 _PARAMS = (
     "n_landmarks",
@@ -85,6 +92,7 @@ _PARAMS = (
     "n_hypotheses",
     "hypothesis_quantile",
     "frame_passes",
+    "appearance_check",
     "boundary",
     "landmark_noise_mm",
     "n_noise_copies",
@@ -97,7 +105,7 @@ _PARAMS = (
 )
 MAX_MODEL_BYTES = 2 * 1024**3
 _ARCHIVES = ("template.npz", "prior.npz", "orientation.npz", "shape_model.npz", "frame.npz",
-             "boundary/stage.npz", "boundary/classifier.npz")  # fmt: skip
+             "boundary/stage.npz", "boundary/classifier.npz", "appearance.npz")  # fmt: skip
 #: the detector's forests: arrays (detector format 2) or skops (format 1), at any depth
 #: (stage1/ of an auto-context detector holds its own)
 _DETECTOR_ARCHIVES = ("forests.npz", "forests.skops")
@@ -157,6 +165,9 @@ def save_model(model, path: Path) -> Path:
                         version = 5
                         if model.shape_model_.training_costs_ is not None:
                             version = 6
+                            if getattr(model, "appearance_", None) is not None:
+                                model.appearance_.save(tmp / "appearance.npz")
+                                version = 7
         meta = {
             "format": FORMAT,
             "format_version": version,
@@ -237,6 +248,7 @@ def load_model(cls, path: Path):
         raise ModelFileError(f"{path / 'orientation.npz'} does not match the cliques of prior.npz")
     model.shape_model_ = _load_part(path, "shape_model.npz", version, ActiveShapeModel)
     model.frame_ = _load_part(path, "frame.npz", version, ShapeFrame)
+    model.appearance_ = _load_part(path, "appearance.npz", version, FrameAppearance)
     model.boundary_ = None
     if version >= _SINCE["boundary"]:
         model.boundary_ = BoundaryStage.load(path / "boundary")
@@ -250,6 +262,8 @@ def load_model(cls, path: Path):
         model.boundary = False  # no regional stage: the shape-only label map
     if model.frame_ is not None and model.frame_.reference.shape != np.shape(model.landmarks_)[1:]:
         raise ModelFileError(f"{path / 'frame.npz'} does not match the landmarks of template.npz")
+    if model.appearance_ is not None and not model.appearance_.fits(model.frame_):
+        raise ModelFileError(f"{path / 'appearance.npz'} does not match the grid of frame.npz")
     if model.shape_model_ is not None and (
         model.shape_model_.mean_shape_.shape != np.shape(model.landmarks_)[1:]
     ):

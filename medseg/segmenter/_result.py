@@ -88,6 +88,15 @@ class Segmentation:
         shape's frame in which the last pass ran (the result's landmarks, candidates and
         hypotheses are mapped back into the input's space). None when no pass ran in the
         frame.
+    appearance : dict or None
+        With the appearance check (``appearance_check``): ``score``, the correlation of the
+        image near the found landmarks, in the shape's frame, with the training images'
+        mean; ``threshold``, below which a better placement was searched (``searched``);
+        then ``search_score``, the searched landmarks' correlation near the shape,
+        ``box_score`` and ``search_box_score``, the found and the searched landmarks'
+        correlations over the frame's box, and ``replaced``, whether the searched landmarks
+        (better on both) replaced the found ones (``landmarks`` then no longer come from
+        ``chosen``). None without the check.
     """
 
     label: Any
@@ -103,6 +112,7 @@ class Segmentation:
     frame_pose: Similarity | None = None
     shape_label: Any = None
     quality: dict | None = None
+    appearance: dict | None = None
 
     def plot(self, *, axis: int = 0, index: int | None = None):
         """Image, label and overlay of one slice with the nearby landmarks (a matplotlib

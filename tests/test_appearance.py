@@ -1,0 +1,93 @@
+"""The appearance check in the shape's frame: a turned copy of the shape is seen and undone."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+from scipy.spatial.transform import Rotation
+
+from medseg.errors import ModelFileError, ParameterError
+from medseg.frame import ShapeFrame
+from medseg.segmenter import FrameAppearance
+from medseg.segmenter._appearance import cube_rotations
+
+SIZE = 44  # voxels of 1 mm
+AXES = np.array([11.0, 6.0, 5.0])  # the ellipsoid's semi-axes, mm
+
+
+def _sites(n: int = 24) -> np.ndarray:
+    """Points on the ellipsoid's surface (its own frame, centred at 0)."""
+    m = np.arange(n) + 0.5
+    z = 1 - 2 * m / n
+    phi = np.pi * (1 + 5**0.5) * m
+    u = np.stack([np.sqrt(1 - z**2) * np.cos(phi), np.sqrt(1 - z**2) * np.sin(phi), z], 1)
+    return u * AXES
+
+
+def _render(rotation: np.ndarray, rng) -> tuple[sitk.Image, np.ndarray]:
+    """An ellipsoid (symmetric under half-turns about its axes) with a blob beside its
+    head on one side, the only thing that tells a half-turned copy from the right one;
+    posed by ``rotation`` about the image centre. Returns the image and the landmarks."""
+    centre = np.full(3, (SIZE - 1) / 2.0)
+    grid = np.stack(np.meshgrid(*[np.arange(SIZE)] * 3, indexing="ij"), -1)  # (x, y, z)
+    local = (grid - centre) @ rotation  # into the shape's own frame
+    inside = ((local / AXES) ** 2).sum(-1) <= 1
+    blob = np.linalg.norm(local - np.array([7.0, 9.0, 0.0]), axis=-1) <= 4.0
+    values = 40.0 + 60.0 * inside + 35.0 * blob + rng.normal(0, 4.0, inside.shape)
+    image = sitk.GetImageFromArray(values.transpose(2, 1, 0).astype(np.float32))
+    return image, _sites() @ rotation.T + centre
+
+
+@pytest.fixture(scope="module")
+def trained():
+    rng = np.random.default_rng(0)
+    poses = Rotation.random(6, random_state=1).as_matrix()
+    cases = [_render(rotation, rng) for rotation in poses]
+    images, shapes = [c[0] for c in cases], np.stack([c[1] for c in cases])
+    frame = ShapeFrame.fit(shapes, images)
+    return frame, FrameAppearance().fit(frame, images, shapes)
+
+
+def test_the_cube_rotations_are_the_24_proper_rotations_identity_first():
+    group = cube_rotations()
+    assert group.shape == (24, 3, 3)
+    np.testing.assert_allclose(group[0], np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(np.linalg.det(group), 1.0)
+    assert len({tuple(np.round(r, 6).ravel()) for r in group}) == 24
+
+
+def test_a_half_turned_shape_scores_low_and_the_search_puts_it_right(trained):
+    frame, check = trained
+    rotation = Rotation.from_rotvec([0.3, -1.2, 2.0]).as_matrix()  # a pose never trained
+    image, truth = _render(rotation, np.random.default_rng(5))
+    centre = truth.mean(axis=0)
+    long_axis = rotation[:, 0]  # the half-turn about it maps the ellipsoid onto itself
+    half = Rotation.from_rotvec(np.pi * long_axis).as_matrix()
+    turned = (truth - centre) @ half.T + centre  # on the same surface, each site elsewhere
+    assert np.linalg.norm(turned - truth, axis=1).mean() > 8.0
+
+    right, wrong = check.score(frame, image, truth), check.score(frame, image, turned)
+    assert right >= check.threshold_ - 0.05 and wrong < check.threshold_
+    assert wrong < right - 0.02
+    found = check.search(frame, image, turned)
+    assert found.shape == truth.shape
+    assert np.linalg.norm(found - truth, axis=1).mean() < 2.0
+
+
+def test_save_load_round_trip_and_refusals(trained, tmp_path):
+    frame, check = trained
+    loaded = FrameAppearance.load(check.save(tmp_path / "appearance.npz"))
+    np.testing.assert_array_equal(loaded.mean_, check.mean_)
+    assert loaded.threshold_ == check.threshold_ and loaded.fits(frame)
+    image, truth = _render(np.eye(3), np.random.default_rng(2))
+    assert loaded.score(frame, image, truth) == check.score(frame, image, truth)
+    other = ShapeFrame(frame.reference, frame.lower, frame.upper + 6.0, frame.spacing)
+    assert not loaded.fits(other)
+    with pytest.raises(ParameterError, match="another frame"):
+        loaded.score(other, image, truth)
+    (tmp_path / "bad.npz").write_bytes(b"not an archive")
+    with pytest.raises(ModelFileError):
+        FrameAppearance.load(tmp_path / "bad.npz")
+    with pytest.raises(ParameterError, match="at least 2"):
+        FrameAppearance().fit(frame, [image], truth[None])
