@@ -274,7 +274,8 @@ def test_a_version_5_model_solves_every_hypothesis_as_before(fitted, saved, coho
 def test_a_version_6_model_loads_without_the_appearance_check(fitted, saved, cohort, tmp_path):
     loaded = load_model(_as_older_version(saved, tmp_path / "v6", 6))
     assert loaded.appearance_ is None and not loaded._uses_appearance()
-    assert loaded.appearance_check  # the default, which a model without the check ignores
+    loaded.appearance_check = True  # asked for, on a model without the check: ignored
+    assert not loaded._uses_appearance()
     unchecked = copy.copy(fitted)
     unchecked.appearance_check = False
     image = cohort[6].load_image()
@@ -283,7 +284,10 @@ def test_a_version_6_model_loads_without_the_appearance_check(fitted, saved, coh
     np.testing.assert_array_equal(seg.landmarks, expected.landmarks)
     again = loaded.save(tmp_path / "again")
     assert json.loads((again / "model.json").read_text(encoding="utf-8"))["format_version"] == 6
-    checked = fitted.segment(image).appearance
+    assert fitted.segment(image).appearance is None  # off by default
+    on = copy.copy(fitted)
+    on.appearance_check = True
+    checked = on.segment(image).appearance
     assert checked is not None and checked["threshold"] == fitted.appearance_.threshold_
     assert checked["searched"] == (checked["score"] < checked["threshold"])
 

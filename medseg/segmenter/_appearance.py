@@ -263,6 +263,7 @@ def _register(fixed, moving, start, iterations: int):
     transform = sitk.Similarity3DTransform(start)
     method = sitk.ImageRegistrationMethod()
     method.SetMetricAsCorrelation()
+    method.SetNumberOfThreads(1)  # ITK's threads add the metric in their own order
     if _SAMPLING < 1.0:  # a fixed seed: the same samples, the same registration, every run
         method.SetMetricSamplingStrategy(method.REGULAR)
         method.SetMetricSamplingPercentage(_SAMPLING, 1)
