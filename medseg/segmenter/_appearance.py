@@ -176,18 +176,23 @@ class FrameAppearance:
                 "grid: it was fitted in another frame"
             )
 
-    def score(
-        self, frame: ShapeFrame, image: sitk.Image, landmarks: ArrayLike, *, near: bool = True
-    ) -> float:
-        """The correlation of ``image`` placed by ``landmarks`` with the training mean: near
-        the structure (what :attr:`threshold_` judges), or with ``near=False`` over the
+    def scores(
+        self, frame: ShapeFrame, image: sitk.Image, landmarks: ArrayLike
+    ) -> tuple[float, float]:
+        """The correlations of ``image`` placed by ``landmarks`` with the training mean, from
+        one resampling: near the structure (what :attr:`threshold_` judges) and over the
         frame's whole box (what the registration of :meth:`search` maximises)."""
         self._check_is_fitted(frame)
         upright = self._upright(frame, image, frame.pose(landmarks))
-        if not near:
-            return _correlation(upright, self.mean_)
         region = self._near(frame)
-        return _correlation(upright[region], self.mean_[region])
+        return (
+            _correlation(upright[region], self.mean_[region]),
+            _correlation(upright, self.mean_),
+        )
+
+    def score(self, frame: ShapeFrame, image: sitk.Image, landmarks: ArrayLike) -> float:
+        """The correlation near the structure (:meth:`scores`' first)."""
+        return self.scores(frame, image, landmarks)[0]
 
     def search(self, frame: ShapeFrame, image: sitk.Image, landmarks: ArrayLike) -> np.ndarray:
         """The reference shape placed in ``image`` by the best registration onto the mean,

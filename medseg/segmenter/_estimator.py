@@ -664,16 +664,14 @@ class ShapePriorSegmenter(BaseEstimator):
         correlates better (:class:`FrameAppearance`); and what the check saw."""
         t0 = time.perf_counter()
         check = self.appearance_
-        score = check.score(self.frame_, image, found.landmarks)
+        score, before = check.scores(self.frame_, image, found.landmarks)
         seen = {"score": score, "threshold": check.threshold_, "searched": False, "replaced": False}
         if score < check.threshold_:
             start = check.search(self.frame_, image, found.landmarks)
             levels = int(self.refine_levels) or None  # 0: the search's every level
             moved = self.shape_model_.search(image, start=start, levels=levels).landmarks
             # better over the frame's box, as the registration judged, and near the shape
-            near = check.score(self.frame_, image, moved)
-            before = check.score(self.frame_, image, found.landmarks, near=False)
-            after = check.score(self.frame_, image, moved, near=False)
+            near, after = check.scores(self.frame_, image, moved)
             replaced = after > before and near > score and not collapsed(moved)
             seen |= {"searched": True, "search_score": near, "box_score": before,
                      "search_box_score": after, "replaced": replaced}  # fmt: skip
