@@ -91,6 +91,14 @@ def build_parser() -> argparse.ArgumentParser:
         "gives it before the voxel classifier and the graph cut. Default: off.",
     )
     parser.add_argument(
+        "--no-appearance-check",
+        action="store_true",
+        help="Keep the MRF's shape even where the image around it, in the shape's frame, "
+        "looks unlike the training images (the check then searches every rotation for the "
+        "shape turned about itself, and costs 1-6 s on such a case). Default: the model's "
+        "setting (on for models trained since format 7).",
+    )
+    parser.add_argument(
         "--jobs",
         type=positive_int,
         default=machine_cores(),
@@ -144,6 +152,8 @@ def _segment_one(
     from medseg.segmenter import QUALITY_THRESHOLD
 
     model.boundary = not args.no_boundary
+    if args.no_appearance_check:
+        model.appearance_check = False
     seg = model.segment(source, use_prior=not args.no_prior)
     write_image(seg.label, target, protect=[source])
     stem = target.name[: -len(image_suffix(target) or target.suffix)]
@@ -159,9 +169,12 @@ def _segment_one(
             seg.surface.save(str(tmp))
     gap = f", duality gap {seg.mrf.gap:.2e}" if seg.mrf is not None else ""
     line = f"{source.name} -> {target}{gap}"
+    if seg.appearance is not None and seg.appearance["replaced"]:
+        line += f", shape turned by {seg.appearance['turn_deg']:.0f} degrees (appearance check)"
     if seg.quality is not None:
+        record = dict(seg.quality, appearance=seg.appearance)
         with atomic_write(target.with_name(f"{stem}.quality.json"), protect=[source]) as tmp:
-            tmp.write_text(json.dumps(seg.quality, indent=2) + "\n", encoding="utf-8")
+            tmp.write_text(json.dumps(record, indent=2) + "\n", encoding="utf-8")
         if seg.quality["score"] is not None:
             line += f", quality score {seg.quality['score']:.1f}"
         if seg.quality["flagged"]:

@@ -120,6 +120,14 @@ class ShapeFrame:
             )
         return similarity_fit(landmarks, self.reference)
 
+    def turn_deg(self, landmarks: ArrayLike, other: ArrayLike) -> float:
+        """The angle (degrees, 0-180) of the rotation between the frames of two
+        configurations in one image: how far ``other`` is the shape turned from
+        ``landmarks``, whatever their sizes and positions."""
+        relative = self.pose(landmarks).rotation @ self.pose(other).rotation.T
+        cosine = (np.trace(relative) - 1.0) / 2.0
+        return float(np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0))))
+
     def grid(self) -> sitk.Image:
         """An empty image on the frame's grid (identity direction, frame mm)."""
         size = np.maximum(np.ceil((self.upper - self.lower) / self.spacing), 1).astype(int)

@@ -75,6 +75,29 @@ def test_a_half_turned_shape_scores_low_and_the_search_puts_it_right(trained):
     assert np.linalg.norm(found - truth, axis=1).mean() < 2.0
 
 
+def test_a_turned_copy_is_replaced_a_small_correction_is_not(trained):
+    """The searched landmarks replace the found ones when they correlate better and the
+    found ones are the shape turned about itself; a found shape tilted a little from the
+    truth stays, though the truth correlates better: a local correction is the detectors'
+    and the profile search's to judge."""
+    frame, check = trained
+    rotation = Rotation.from_rotvec([-0.9, 0.4, 1.1]).as_matrix()
+    image, truth = _render(rotation, np.random.default_rng(7))
+    centre = truth.mean(axis=0)
+    half = Rotation.from_rotvec(np.pi * rotation[:, 0]).as_matrix()
+    turned = (truth - centre) @ half.T + centre
+    tilt = Rotation.from_rotvec(np.deg2rad(15.0) * rotation[:, 2]).as_matrix()
+    tilted = (truth - centre) @ tilt.T + centre
+
+    better, seen = check.prefers(frame, image, turned, truth)
+    assert better and seen["turn_deg"] == pytest.approx(180.0, abs=1e-3)
+    assert not check.prefers(frame, image, truth, turned)[0]  # the right one stays
+    better, seen = check.prefers(frame, image, tilted, truth)
+    near, box = check.scores(frame, image, tilted)
+    assert seen["search_score"] > near and seen["search_box_score"] > box
+    assert seen["turn_deg"] == pytest.approx(15.0, abs=1e-3) and not better
+
+
 def test_save_load_round_trip_and_refusals(trained, tmp_path):
     frame, check = trained
     loaded = FrameAppearance.load(check.save(tmp_path / "appearance.npz"))

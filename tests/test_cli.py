@@ -176,6 +176,28 @@ def test_jobs_below_one_is_a_usage_error(value, folder, tmp_path, capfd):
     assert not any(tmp_path.iterdir())
 
 
+def test_no_appearance_check_keeps_the_mrf_shape_and_the_record_says_what_the_check_saw(
+    folder, tmp_path, capfd
+):
+    model_path, inputs = folder
+    source = sorted(inputs.glob("phantom_*"))[1]
+    model = load_model(model_path)
+    assert model.appearance_check and model.appearance_ is not None  # on by default
+    out = tmp_path / "checked.nii.gz"
+    assert segment_main(["-m", str(model_path), "-i", str(source), "-o", str(out)]) == 0
+    record = json.loads((tmp_path / "checked.quality.json").read_text())
+    seen = model.segment(source).appearance
+    assert record["appearance"]["score"] == pytest.approx(seen["score"])
+    assert record["appearance"]["searched"] == (seen["score"] < seen["threshold"])
+    capfd.readouterr()
+    assert segment_main(["-m", str(model_path), "-i", str(source), "-o",
+                         str(tmp_path / "plain.nii.gz"), "--no-appearance-check"]) == 0  # fmt: skip
+    model.appearance_check = False
+    written = sitk.GetArrayFromImage(read_image(tmp_path / "plain.nii.gz"))
+    np.testing.assert_array_equal(written, sitk.GetArrayFromImage(model.segment(source).label))
+    assert json.loads((tmp_path / "plain.quality.json").read_text())["appearance"] is None
+
+
 def test_no_boundary_writes_the_shape_only_map_and_no_quality_record(folder, tmp_path, capfd):
     model_path, inputs = folder
     source = sorted(inputs.glob("phantom_*"))[0]

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import SimpleITK as sitk
+from scipy.spatial.transform import Rotation
 
 from medseg.datasets import make_phantom_cohort
 from medseg.errors import ModelFileError, ParameterError
@@ -72,6 +73,18 @@ def test_resampling_puts_the_structure_at_the_reference(frame, cohort):
     centroid = np.asarray([canonical.TransformContinuousIndexToPhysicalPoint(p.tolist())
                            for p in fg.astype(float)]).mean(axis=0)  # fmt: skip
     assert np.linalg.norm(centroid - frame.reference.mean(axis=0)) < 2.0
+
+
+def test_turn_is_the_rotation_between_two_configurations_whatever_their_size(frame, cohort):
+    landmarks = cohort[5].load_landmarks()
+    centre = landmarks.mean(axis=0)
+    assert frame.turn_deg(landmarks, landmarks) == pytest.approx(0.0, abs=1e-4)
+    for angle in (10.0, 35.0, 120.0, 179.0):
+        turn = Rotation.from_rotvec(np.deg2rad(angle) * np.array([0.6, -0.0, 0.8]))
+        # turned about any point, scaled and shifted: only the rotation counts
+        other = 1.2 * turn.apply(landmarks - centre) + centre + np.array([5.0, -3.0, 2.0])
+        assert frame.turn_deg(landmarks, other) == pytest.approx(angle, abs=1e-3)
+        assert frame.turn_deg(other, landmarks) == pytest.approx(angle, abs=1e-3)
 
 
 def test_frame_round_trip_and_bad_files(frame, tmp_path):

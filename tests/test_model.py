@@ -284,10 +284,7 @@ def test_a_version_6_model_loads_without_the_appearance_check(fitted, saved, coh
     np.testing.assert_array_equal(seg.landmarks, expected.landmarks)
     again = loaded.save(tmp_path / "again")
     assert json.loads((again / "model.json").read_text(encoding="utf-8"))["format_version"] == 6
-    assert fitted.segment(image).appearance is None  # off by default
-    on = copy.copy(fitted)
-    on.appearance_check = True
-    checked = on.segment(image).appearance
+    checked = fitted.segment(image).appearance  # on by default
     assert checked is not None and checked["threshold"] == fitted.appearance_.threshold_
     assert checked["searched"] == (checked["score"] < checked["threshold"])
 

@@ -132,22 +132,19 @@ class ShapePriorSegmenter(BaseEstimator):
         upright, at its mean size, in a training-like field of view. The frame comes from
         the pose-free solution, so the result stays pose free while the detectors and the
         search see the structure as in training. 0 is the paper's single pass.
-    appearance_check : bool, default False
+    appearance_check : bool, default True
         After the refinement, compare the image near the found landmarks, seen in the
         shape's frame, with the training images seen in theirs
         (:class:`~medseg.segmenter.FrameAppearance`): below what held-out training images
         reach (its 5 % quantile), register the image onto their mean from the found frame
         turned every way, refine the reference shape carried through the best registration,
         and keep it when it correlates better with the mean, over the frame's box and near
-        the shape. The similarity-invariant prior cannot tell the shape from the shape
-        turned about itself onto the same surface (on the phantom the cause of most
-        failures); the image around it can. Off by default: on the phantom's kept fold
-        models it took the Dice from 0.807 to 0.902 as acquired and from 0.713 / 0.779 to
-        0.828 / 0.879 rotated by 15 / 45 degrees, but on 61 held-out hippocampus cases it
-        replaced two partial failures by worse ones (acquired 0.8712 -> 0.8693, under a
-        random similarity 0.8608 -> 0.8748), and in a small phantom test it replaced a right
-        configuration; a searched case costs 1-6 s. ``fit`` always learns it (a second), so
-        it can be turned on for any model of format version 7.
+        the shape, and is the found shape turned by at least 30 degrees. The
+        similarity-invariant prior cannot tell the shape from the shape turned about itself
+        onto the same surface (on the phantom the cause of most failures); the image around
+        it can. A search that ends close to the found frame is left to the detectors and the
+        profile search: on the hippocampus the two it replaced, turned by 6 and 23 degrees,
+        lost Dice. A searched case costs 1-6 s. Models of format versions 1-6 have no check.
     boundary : bool, default True
         The regional stage (:class:`~medseg.segmenter.BoundaryStage`): in the shape's
         frame, a voxel classifier and a graph cut move the warped template's boundary (and
@@ -251,7 +248,7 @@ class ShapePriorSegmenter(BaseEstimator):
         n_hypotheses: int = 4,
         hypothesis_quantile: float | None = 0.9,
         frame_passes: int = 0,
-        appearance_check: bool = False,
+        appearance_check: bool = True,
         boundary: bool = True,
         landmark_noise_mm: float = 1.5,
         n_noise_copies: int = 10,
@@ -661,7 +658,8 @@ class ShapePriorSegmenter(BaseEstimator):
 
     def _check_appearance(self, image, found: Located) -> tuple[Located, dict]:
         """``found``, or the refined registration onto the training mean when that
-        correlates better (:class:`FrameAppearance`); and what the check saw."""
+        correlates better and is ``found`` turned about itself
+        (:meth:`FrameAppearance.prefers`); and what the check saw."""
         t0 = time.perf_counter()
         check = self.appearance_
         score, before = check.scores(self.frame_, image, found.landmarks)
@@ -670,11 +668,11 @@ class ShapePriorSegmenter(BaseEstimator):
             start = check.search(self.frame_, image, found.landmarks)
             levels = int(self.refine_levels) or None  # 0: the search's every level
             moved = self.shape_model_.search(image, start=start, levels=levels).landmarks
-            # better over the frame's box, as the registration judged, and near the shape
-            near, after = check.scores(self.frame_, image, moved)
-            replaced = after > before and near > score and not collapsed(moved)
-            seen |= {"searched": True, "search_score": near, "box_score": before,
-                     "search_box_score": after, "replaced": replaced}  # fmt: skip
+            better, judged = check.prefers(
+                self.frame_, image, found.landmarks, moved, found_scores=(score, before)
+            )
+            replaced = better and not collapsed(moved)
+            seen |= {"searched": True, "box_score": before, **judged, "replaced": replaced}
             if replaced:
                 found = replace(found, landmarks=moved)
         found.timings["appearance"] = time.perf_counter() - t0

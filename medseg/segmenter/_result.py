@@ -94,9 +94,10 @@ class Segmentation:
         mean; ``threshold``, below which a better placement was searched (``searched``);
         then ``search_score``, the searched landmarks' correlation near the shape,
         ``box_score`` and ``search_box_score``, the found and the searched landmarks'
-        correlations over the frame's box, and ``replaced``, whether the searched landmarks
-        (better on both) replaced the found ones (``landmarks`` then no longer come from
-        ``chosen``). None without the check.
+        correlations over the frame's box, ``turn_deg``, the rotation between the found and
+        the searched shape, and ``replaced``, whether the searched landmarks (better on
+        both, and turned by at least ``MIN_TURN_DEG``) replaced the found ones
+        (``landmarks`` then no longer come from ``chosen``). None without the check.
     """
 
     label: Any
