@@ -26,6 +26,7 @@ check is pose free too.
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from dataclasses import replace
 from pathlib import Path
 
@@ -39,6 +40,7 @@ from medseg.errors import ModelFileError, NotFittedError, ParameterError
 from medseg.frame import ShapeFrame
 from medseg.geometry import Similarity
 from medseg.io import check_format, load_arrays, save_arrays
+from medseg.threads import thread_map
 
 __all__ = ["MIN_TURN_DEG", "FrameAppearance", "cube_rotations"]
 
@@ -227,9 +229,18 @@ class FrameAppearance:
         better = box > box_before and near > near_before and turn >= MIN_TURN_DEG
         return better, {"search_score": near, "search_box_score": box, "turn_deg": turn}
 
-    def search(self, frame: ShapeFrame, image: sitk.Image, landmarks: ArrayLike) -> np.ndarray:
+    def search(
+        self, frame: ShapeFrame, image: sitk.Image, landmarks: ArrayLike, *, n_jobs: int = 1
+    ) -> np.ndarray:
         """The reference shape placed in ``image`` by the best registration onto the mean,
-        from the frame of ``landmarks`` turned by every rotation of the cube: (N, 3) mm."""
+        from the frame of ``landmarks`` turned by every rotation of the cube: (N, 3) mm.
+
+        Every registration runs on one ITK thread (with more, the result moves in the
+        seventh digit with their number: the same image gave another answer under
+        ``medseg-segment --jobs 2`` than under ``--jobs 1``); the independent registrations
+        run on ``n_jobs`` threads instead, in a fixed order, so the answer is the same on
+        any number.
+        """
         self._check_is_fitted(frame)
         grid = self._grid(frame)
         fixed = sitk.GetImageFromArray(self.mean_)
@@ -237,13 +248,16 @@ class FrameAppearance:
         moving = sitk.Cast(image, sitk.sitkFloat32)
         pose = frame.pose(landmarks)
         centre = frame.reference.mean(axis=0)
-        screened = []
-        for turn in cube_rotations():
-            start = _frame_to_image(pose, turn, centre)
-            screened.append(_register(fixed, moving, start, _SCREEN_ITERATIONS))
-        screened.sort(key=lambda result: -result[0])
-        kept = screened[:_KEPT_STARTS]
-        final = [_register(fixed, moving, t, _FINAL_ITERATIONS) for _, t in kept]
+        starts = [_frame_to_image(pose, turn, centre) for turn in cube_rotations()]
+        with _one_itk_thread():
+            screened = thread_map(
+                lambda start: _register(fixed, moving, start, _SCREEN_ITERATIONS), starts, n_jobs
+            )
+            order = sorted(range(len(starts)), key=lambda k: -screened[k][0])  # stable
+            kept = [screened[k][1] for k in order[:_KEPT_STARTS]]
+            final = thread_map(
+                lambda start: _register(fixed, moving, start, _FINAL_ITERATIONS), kept, n_jobs
+            )
         _, best = max(final, key=lambda result: result[0])
         return np.array([best.TransformPoint(p) for p in frame.reference.tolist()])
 
@@ -294,6 +308,17 @@ def _frame_to_image(pose: Similarity, turn: np.ndarray, centre: np.ndarray):
     transform.SetScale(1.0 / pose.scale)
     transform.SetTranslation((pose.inverse(centre[None])[0] - centre).tolist())
     return transform
+
+
+@contextmanager
+def _one_itk_thread():
+    """ITK's filters on one thread while inside (its default is a process-wide setting)."""
+    before = sitk.ProcessObject.GetGlobalDefaultNumberOfThreads()
+    sitk.ProcessObject.SetGlobalDefaultNumberOfThreads(1)
+    try:
+        yield
+    finally:
+        sitk.ProcessObject.SetGlobalDefaultNumberOfThreads(before)
 
 
 def _register(fixed, moving, start, iterations: int):

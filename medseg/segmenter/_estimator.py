@@ -665,7 +665,7 @@ class ShapePriorSegmenter(BaseEstimator):
         score, before = check.scores(self.frame_, image, found.landmarks)
         seen = {"score": score, "threshold": check.threshold_, "searched": False, "replaced": False}
         if score < check.threshold_:
-            start = check.search(self.frame_, image, found.landmarks)
+            start = check.search(self.frame_, image, found.landmarks, n_jobs=self.n_jobs)
             levels = int(self.refine_levels) or None  # 0: the search's every level
             moved = self.shape_model_.search(image, start=start, levels=levels).landmarks
             better, judged = check.prefers(
