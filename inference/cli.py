@@ -96,7 +96,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="Keep the MRF's shape even where the image around it, in the shape's frame, "
         "looks unlike the training images (the check then searches every rotation for the "
         "shape turned about itself, and costs 1-6 s on such a case). Default: the model's "
-        "setting (on for models trained since format 7).",
+        "own appearance_check (on for models trained from 2026-12-07 on).",
     )
     parser.add_argument(
         "--jobs",
