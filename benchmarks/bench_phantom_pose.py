@@ -3,7 +3,7 @@
 Usage::
 
     python benchmarks/bench_phantom_pose.py --out draws.jsonl [--models DIR]
-        [--angles 1,15,30,45,90] [--draws 6] [--shard 0 --n-shards 1] [--seed 0]
+        [--angles 1,15,30,45,90] [--draws 6] [--fov] [--shard 0 --n-shards 1] [--seed 0]
     python benchmarks/bench_phantom_pose.py --summary draws.jsonl [more.jsonl ...]
 
 The embedded phantom cohort (``make_phantom_cohort(20, random_state=seed)``), 5 folds by
@@ -12,7 +12,9 @@ them (same seeds; kept in ``--models`` and reused when there). Each test case is
 as acquired and rotated by each angle about ``--draws`` random axes through the image
 centre (``rotN`` of :mod:`medseg.evaluation.perturbation`, on the grid padded by 15 mm).
 Draw 0 uses the evaluation's own seed, so it is ``medseg-evaluate``'s row; draw ``d`` the
-seed of the condition ``rotN#d``.
+seed of the condition ``rotN#d``. ``--fov`` adds the field of view alone, without a
+rotation: padded by 15 mm of zeros (``pad_zeros``, one draw: nothing in it is random) and of
+noise like the image's background (``pad_noise``, ``--draws`` draws of the noise).
 
 Why draws: on the phantom a case's outcome is bimodal (right configuration, Dice about
 0.95; wrong one, below 0.6), and a small change of the input (15 mm of zero padding, half
@@ -50,6 +52,8 @@ from medseg.segmenter import ShapePriorSegmenter, load_model
 N_SUBJECTS = 20
 N_FOLDS = 5
 LABELS = (1,)
+FOV = ("pad_zeros", "pad_noise")
+ONE_DRAW = ("acquired", "pad_zeros")  # nothing random in them
 
 
 def _fold_model(cohort, train, fold: int, seed: int, models: Path | None):
@@ -83,7 +87,7 @@ def _dice(model, image, labels, condition: str, seed: int) -> float:
 
 def run(args) -> None:
     cohort = make_phantom_cohort(N_SUBJECTS, random_state=args.seed)
-    conditions = ["acquired"] + [f"rot{a:g}" for a in args.angles]
+    conditions = ["acquired"] + (list(FOV) if args.fov else []) + [f"rot{a:g}" for a in args.angles]
     done = set()
     if args.out.exists():
         for line in args.out.read_text().splitlines():
@@ -100,7 +104,7 @@ def run(args) -> None:
                 case = cohort[i]
                 image, labels = case.load_image(), label_values(case.load_label(), LABELS)
                 for condition in conditions:
-                    for draw in range(1 if condition == "acquired" else args.draws):
+                    for draw in range(1 if condition in ONE_DRAW else args.draws):
                         if (case.case_id, condition, draw) in done:
                             continue
                         seed = _condition_seed(args.seed, case.case_id, condition, draw)
@@ -116,31 +120,42 @@ def run(args) -> None:
 
 
 def summary(paths: list[Path]) -> None:
+    """Mean Dice per condition (cases as clusters), and its paired difference from the
+    1-degree rotation and from the acquired case."""
     dice: dict = defaultdict(lambda: defaultdict(list))  # condition -> case -> [dice]
     for path in paths:
         for line in path.read_text().splitlines():
             row = json.loads(line)
             dice[row["condition"]][row["case"]].append(row["dice"])
-    reference = next((c for c in dice if c.startswith("rot") and float(c[3:]) < 5), None)
-    print(f"{'condition':<10} {'cases':>5} {'draws':>6} {'mean':>7} {'s.e.':>6}  vs {reference}")
+    low = next((c for c in dice if c.startswith("rot") and float(c[3:]) < 5), None)
+    references = [c for c in (low, "acquired") if c in dice]
+    print(
+        f"{'condition':<10} {'cases':>5} {'draws':>6} {'mean':>7} {'s.e.':>6}"
+        + "".join(f"  {'vs ' + c:>22}" for c in references)
+    )
     for condition, cases in sorted(dice.items(), key=lambda kv: _angle(kv[0])):
         per_case = {case: float(np.mean(v)) for case, v in cases.items()}
         values = np.array(list(per_case.values()))
-        se = values.std(ddof=1) / np.sqrt(len(values)) if len(values) > 1 else np.nan
         line = (
             f"{condition:<10} {len(values):>5} {sum(map(len, cases.values())):>6} "
-            f"{values.mean():>7.4f} {se:>6.4f}"
+            f"{values.mean():>7.4f} {_se(values):>6.4f}"
         )
-        if reference is not None and condition != reference:
+        for reference in references:
             both = sorted(set(per_case) & set(dice[reference]))
             diff = np.array([per_case[c] - np.mean(dice[reference][c]) for c in both])
-            if len(diff) > 1:
-                line += f"  {diff.mean():+.4f} (s.e. {diff.std(ddof=1) / np.sqrt(len(diff)):.4f})"
+            shown = condition != reference and len(diff) > 1
+            line += f"  {diff.mean():+.4f} (s.e. {_se(diff):.4f})" if shown else f"  {'':>22}"
         print(line)
 
 
+def _se(values: np.ndarray) -> float:
+    return values.std(ddof=1) / np.sqrt(len(values)) if len(values) > 1 else float("nan")
+
+
 def _angle(condition: str) -> float:
-    return -1.0 if condition == "acquired" else float(condition[3:])
+    """Sort key: acquired, the padded fields of view, then the angles."""
+    order = ("acquired",) + FOV
+    return order.index(condition) - len(order) if condition in order else float(condition[3:])
 
 
 def main(argv=None) -> int:
@@ -151,6 +166,7 @@ def main(argv=None) -> int:
         "--angles", type=lambda s: [float(a) for a in s.split(",")], default=[1, 15, 30, 45, 90]
     )
     parser.add_argument("--draws", type=int, default=6)
+    parser.add_argument("--fov", action="store_true", help="Also pad_zeros and pad_noise.")
     parser.add_argument("--shard", type=int, default=0)
     parser.add_argument("--n-shards", type=int, default=1)
     parser.add_argument("--seed", type=int, default=0)

@@ -823,3 +823,31 @@ def test_random_pose_moves_the_content_as_it_says_and_stays_within_its_ranges():
         assert again[2] == scale
     assert max(angles) <= 90.0 + 1e-9 and 0.8 <= min(scales) and max(scales) <= 1.25
     assert len(set(np.round(scales, 6))) == 6  # the draws differ from seed to seed
+
+
+@pytest.mark.parametrize("fill", ["zeros", "border"])
+def test_content_mask_leaves_out_a_constant_padding_and_the_voxel_beside_it(fill):
+    """An image with noise in every voxel is all content; padded with a constant, the
+    padding and one voxel on either side of its edge are left out, and nothing else."""
+    rng = np.random.default_rng(3)
+    image = sitk.GetImageFromArray(rng.normal(50.0, 5.0, size=(9, 11, 13)).astype(np.float32))
+    image.SetSpacing((0.8, 1.0, 1.5))
+    whole = sitk.GetArrayFromImage(mio.content_mask(image))
+    assert whole.dtype == np.uint8 and whole.all()
+
+    padded = mio.resample_affine(
+        image, np.eye(3), np.zeros(3), mio.padded_grid(image, 3.0), fill=fill
+    )
+    mask = sitk.GetArrayFromImage(mio.content_mask(padded))
+    pad = np.ceil(3.0 / np.asarray(image.GetSpacing())[::-1] - 1e-9).astype(int)  # (z, y, x)
+    expected = np.zeros(mask.shape, dtype=np.uint8)
+    inner = tuple(slice(p + 1, p + n - 1) for p, n in zip(pad, (9, 11, 13), strict=True))
+    expected[inner] = 1  # the original voxels but their outer layer
+    np.testing.assert_array_equal(mask, expected)
+
+
+def test_content_mask_of_a_constant_image_is_empty_and_of_a_vector_image_refused():
+    flat = sitk.Image([6, 6, 6], sitk.sitkFloat32) + 7.0
+    assert not sitk.GetArrayFromImage(mio.content_mask(flat)).any()
+    with pytest.raises(ParameterError, match="scalar"):
+        mio.content_mask(sitk.Image([4, 4, 4], sitk.sitkVectorFloat32, 3))

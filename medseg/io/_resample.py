@@ -4,8 +4,9 @@ The one place images change grid: :func:`resample_like` (onto a reference's grid
 nearest neighbour or label-linear interpolation, so no label value is invented),
 :func:`resample_affine` (moved by an affine map of physical space, onto a grid of choice,
 with what lies beyond the original field of view filled by a constant, zeros, or noise like
-the image's border), and
-:func:`padded_grid` (a grid extended by a margin). Pose perturbations, the shape's frame and
+the image's border),
+:func:`padded_grid` (a grid extended by a margin), and :func:`content_mask` (the voxels that
+are not such a constant fill). Pose perturbations, the shape's frame and
 training-time pose augmentation are all built on these.
 """
 
@@ -23,6 +24,7 @@ __all__ = [
     "resample_like",
     "resample_affine",
     "padded_grid",
+    "content_mask",
     "random_pose",
     "border_values",
     "FILLS",
@@ -115,6 +117,33 @@ def padded_grid(image: sitk.Image, margin_mm: float) -> sitk.Image:
     grid.SetDirection(image.GetDirection())
     grid.SetOrigin(image.TransformContinuousIndexToPhysicalPoint([-float(p) for p in pad]))
     return grid
+
+
+def content_mask(image: sitk.Image) -> sitk.Image:
+    """The voxels of ``image`` that hold the image itself and not a constant padding of its
+    field of view, with a margin: uint8 on ``image``'s grid.
+
+    A padding (the ``"zeros"`` and ``"border"`` fills) is a constant region: its value is
+    that of the voxels whose 3x3x3 neighbourhood holds one value, and every voxel of that
+    value is left out, with the voxels beside one, so that a linear interpolation at a kept
+    voxel reads the image alone. Acquired images have noise in every voxel (none of the
+    phantom's or the hippocampus crops' voxels is in a constant neighbourhood): all of
+    their voxels are kept. A noise-like padding is not told apart, by design.
+    """
+    if image.GetNumberOfComponentsPerPixel() != 1:
+        raise ParameterError("content_mask needs a scalar image")
+    radius = [1] * image.GetDimension()
+    flat = sitk.GetArrayFromImage(
+        sitk.Equal(
+            sitk.GrayscaleDilate(image, radius, sitk.sitkBox),
+            sitk.GrayscaleErode(image, radius, sitk.sitkBox),
+        )
+    ).astype(bool)
+    values = sitk.GetArrayViewFromImage(image)
+    padding = np.isin(values, np.unique(values[flat])) if flat.any() else flat
+    mask = sitk.GetImageFromArray(np.logical_not(padding).astype(np.uint8))
+    mask.CopyInformation(image)
+    return sitk.BinaryErode(mask, radius, sitk.sitkBox, 0, 1) if flat.any() else mask
 
 
 def resample_affine(
