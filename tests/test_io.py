@@ -851,3 +851,21 @@ def test_content_mask_of_a_constant_image_is_empty_and_of_a_vector_image_refused
     assert not sitk.GetArrayFromImage(mio.content_mask(flat)).any()
     with pytest.raises(ParameterError, match="scalar"):
         mio.content_mask(sitk.Image([4, 4, 4], sitk.sitkVectorFloat32, 3))
+
+
+def test_content_mask_is_its_definition_on_images_with_many_constant_regions():
+    """Against the definition written out with SciPy: the values of the voxels whose 3x3x3
+    neighbourhood (clipped to the grid) is constant, grown by the 3x3x3 cube, left out."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(11)
+    for trial in range(12):
+        values = rng.integers(0, 3, size=(8, 10, 12)).astype(np.float32)
+        values[:, : rng.integers(0, 5)] = 7.0
+        values[rng.integers(0, 6) :, :, :4] = 0.0
+        lo = ndimage.minimum_filter(values, 3, mode="nearest")
+        flat = ndimage.maximum_filter(values, 3, mode="nearest") == lo
+        padding = np.isin(values, values[flat]) if flat.any() else flat
+        expected = ~ndimage.binary_dilation(padding, np.ones((3, 3, 3), dtype=bool))
+        got = sitk.GetArrayFromImage(mio.content_mask(sitk.GetImageFromArray(values)))
+        np.testing.assert_array_equal(got, expected.astype(np.uint8), err_msg=f"trial {trial}")

@@ -128,22 +128,63 @@ def content_mask(image: sitk.Image) -> sitk.Image:
     value is left out, with the voxels beside one, so that a linear interpolation at a kept
     voxel reads the image alone. Acquired images have noise in every voxel (none of the
     phantom's or the hippocampus crops' voxels is in a constant neighbourhood): all of
-    their voxels are kept. A noise-like padding is not told apart, by design.
+    their voxels are kept, found at the cost of one comparison of neighbours. A constant
+    region inside the image counts as padding too (CT's air at exactly -1024, an image
+    clipped to its range), and a noise-like padding is not told apart, by design.
     """
     if image.GetNumberOfComponentsPerPixel() != 1:
         raise ParameterError("content_mask needs a scalar image")
-    radius = [1] * image.GetDimension()
-    flat = sitk.GetArrayFromImage(
-        sitk.Equal(
-            sitk.GrayscaleDilate(image, radius, sitk.sitkBox),
-            sitk.GrayscaleErode(image, radius, sitk.sitkBox),
-        )
-    ).astype(bool)
     values = sitk.GetArrayViewFromImage(image)
-    padding = np.isin(values, np.unique(values[flat])) if flat.any() else flat
-    mask = sitk.GetImageFromArray(np.logical_not(padding).astype(np.uint8))
+    keep = np.ones(values.shape, dtype=np.uint8)
+    # a voxel of a constant neighbourhood equals its two neighbours along the last axis
+    row = values[..., 1:-1]
+    if row.size and np.any((values[..., :-2] == row) & (row == values[..., 2:])):
+        flat = _constant_neighbourhoods(values)
+        if flat.any():
+            fills = values[flat]
+            if np.all(fills == fills[0]):  # the usual case: one fill value
+                padding = values == fills[0]
+            else:
+                padding = np.isin(values, np.unique(fills))
+            keep[_grown(padding)] = 0  # and the voxels beside it
+    mask = sitk.GetImageFromArray(keep)
     mask.CopyInformation(image)
-    return sitk.BinaryErode(mask, radius, sitk.sitkBox, 0, 1) if flat.any() else mask
+    return mask
+
+
+def _constant_neighbourhoods(values: np.ndarray) -> np.ndarray:
+    """Whether each voxel's 3x3x3 neighbourhood (clipped to the grid) holds one value.
+
+    Axis by axis: a voxel passes an axis when it equals its two neighbours along it and they
+    passed the axes before, so the line, then the square, then the cube is constant. The
+    same as comparing SciPy's maximum and minimum filters, about ten times faster.
+    """
+    edge = np.pad(values, 1, mode="edge")  # a clipped neighbourhood: the border repeats
+    passed = np.ones(edge.shape, dtype=bool)
+    for axis in range(edge.ndim):
+        before = [slice(None)] * edge.ndim
+        after = [slice(None)] * edge.ndim
+        middle = [slice(None)] * edge.ndim
+        before[axis], middle[axis], after[axis] = slice(None, -2), slice(1, -1), slice(2, None)
+        b, m, a = tuple(before), tuple(middle), tuple(after)
+        line = (edge[b] == edge[m]) & (edge[m] == edge[a]) & passed[b] & passed[m] & passed[a]
+        passed = np.zeros(edge.shape, dtype=bool)
+        passed[m] = line
+    return passed[(slice(1, -1),) * edge.ndim]
+
+
+def _grown(mask: np.ndarray) -> np.ndarray:
+    """``mask`` dilated by the 3x3x3 cube (nothing beyond the grid), one axis at a time."""
+    grown = mask.copy()
+    for axis in range(mask.ndim):
+        step = grown.copy()
+        lower = [slice(None)] * mask.ndim
+        upper = [slice(None)] * mask.ndim
+        lower[axis], upper[axis] = slice(None, -1), slice(1, None)
+        step[tuple(lower)] |= grown[tuple(upper)]
+        step[tuple(upper)] |= grown[tuple(lower)]
+        grown = step
+    return grown
 
 
 def resample_affine(
