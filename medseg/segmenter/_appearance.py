@@ -18,9 +18,10 @@ falls below what held-out training images reach, :meth:`FrameAppearance.search` 
 the image onto the mean over the frame's whole box (SimpleITK: a similarity transform,
 correlation metric; the surroundings are what tell a turned shape from the right one) from
 the found frame turned by each of the 24 rotations of the cube, and returns the reference
-shape carried through the best registration: a start for the active shape search, which the
-segmenter keeps when it correlates with the mean better, over the box, than the found
-landmarks. The starts come from the pose-free solution and cover every rotation, so the
+shape carried through the registration, among the few refined to convergence, that
+correlates best near the structure: a start for the active shape search, which the segmenter
+keeps when it correlates with the mean better, over the box and near the structure, than the
+found landmarks. The starts come from the pose-free solution and cover every rotation, so the
 check is pose free too.
 """
 
@@ -55,7 +56,7 @@ MIN_TURN_DEG = 30.0
 
 # Registration: every start for a few iterations, then the best few until they converge.
 _SCREEN_ITERATIONS = 10
-_KEPT_STARTS = 3
+_KEPT_STARTS = 6  # phantom_003 turned by 15 degrees: the truth's start was the screen's 6th
 _FINAL_ITERATIONS = 40
 _SAMPLING = 0.3  # of the fixed grid's voxels, for the metric: 2.5 times faster, as accurate
 _MIN_BOX_VOXELS = 10  # fewer of the image's in the box: the box score takes the whole box
@@ -212,7 +213,10 @@ class FrameAppearance:
 
     def score(self, frame: ShapeFrame, image: sitk.Image, landmarks: ArrayLike) -> float:
         """The correlation near the structure (:meth:`scores`' first)."""
-        return self.scores(frame, image, landmarks)[0]
+        self._check_is_fitted(frame)
+        region = self._near(frame)
+        upright = self._upright(frame, image, frame.pose(landmarks))
+        return _correlation(upright[region], self.mean_[region])
 
     def prefers(
         self,
@@ -241,8 +245,10 @@ class FrameAppearance:
     def search(
         self, frame: ShapeFrame, image: sitk.Image, landmarks: ArrayLike, *, n_jobs: int = 1
     ) -> np.ndarray:
-        """The reference shape placed in ``image`` by the best registration onto the mean,
-        from the frame of ``landmarks`` turned by every rotation of the cube: (N, 3) mm.
+        """The reference shape placed in ``image`` by a registration onto the mean, from
+        the frame of ``landmarks`` turned by every rotation of the cube: (N, 3) mm. The
+        registrations maximise the correlation over the frame's box; of the few refined to
+        convergence, the one that correlates best near the structure (:meth:`score`) wins.
 
         Every registration runs on one ITK thread (with more, the result moves in the
         seventh digit with their number: the same image gave another answer under
@@ -274,8 +280,16 @@ class FrameAppearance:
                 kept,
                 n_jobs,
             )
-        _, best = max(final, key=lambda result: result[0])
-        return np.array([best.TransformPoint(p) for p in frame.reference.tolist()])
+        # The box's correlation leads the registrations in from afar; the converged ones
+        # are told apart near the structure, where the threshold judges: on the phantom, a
+        # placement turned 115 degrees from the truth beat it over the box by 0.006 (0.613
+        # against 0.607) and scored 0.65 near it, against the truth's 0.92.
+        placed = [
+            np.array([transform.TransformPoint(p) for p in frame.reference.tolist()])
+            for _, transform in final
+        ]
+        near = [self.score(frame, image, points) for points in placed]
+        return placed[int(np.argmax(near))]
 
     # -- persistence ------------------------------------------------------------------------
 
