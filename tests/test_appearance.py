@@ -71,7 +71,7 @@ def test_a_half_turned_shape_scores_low_and_the_search_puts_it_right(trained):
     right, wrong = check.score(frame, image, truth), check.score(frame, image, turned)
     assert right >= check.threshold_ - 0.05 and wrong < check.threshold_
     assert wrong < right - 0.02
-    found = check.search(frame, image, turned)
+    found = check.search(frame, image, turned)[0]
     assert found.shape == truth.shape
     assert np.linalg.norm(found - truth, axis=1).mean() < 2.0
 
@@ -133,7 +133,7 @@ def test_a_field_of_view_padded_with_zeros_is_seen_as_the_image_alone(trained):
             check.scores(frame, padded, landmarks), check.scores(frame, image, landmarks),
             atol=0.02,
         )  # fmt: skip
-    found = check.search(frame, padded, turned)
+    found = check.search(frame, padded, turned)[0]
     assert np.linalg.norm(found - truth, axis=1).mean() < 2.0
     assert check.prefers(frame, padded, turned, found)[0]
 
@@ -170,5 +170,6 @@ def test_of_the_converged_registrations_the_one_that_fits_near_the_shape_wins(tr
         return 0.9, sitk.Similarity3DTransform(start)
 
     monkeypatch.setattr(appearance, "_register", fake_register)
-    found = check.search(frame, image, turned)
-    assert np.linalg.norm(found - truth, axis=1).mean() < 0.01
+    placed = check.search(frame, image, turned)
+    assert placed.shape == (appearance._KEPT_STARTS, *truth.shape)
+    assert np.linalg.norm(placed[0] - truth, axis=1).mean() < 0.01

@@ -18,11 +18,12 @@ falls below what held-out training images reach, :meth:`FrameAppearance.search` 
 the image onto the mean over the frame's whole box (SimpleITK: a similarity transform,
 correlation metric; the surroundings are what tell a turned shape from the right one) from
 the found frame turned by each of the 24 rotations of the cube, and returns the reference
-shape carried through the registration, among the few refined to convergence, that
-correlates best near the structure: a start for the active shape search, which the segmenter
-keeps when it correlates with the mean better, over the box and near the structure, than the
-found landmarks. The starts come from the pose-free solution and cover every rotation, so the
-check is pose free too.
+shape carried through each of the few registrations refined to convergence: starts for the
+active shape search. The segmenter keeps, of the shapes found from them, the one that
+correlates best near the structure among those that correlate with the mean better, over the
+box and near the structure, than the found landmarks (:meth:`FrameAppearance.prefers`).
+The starts come from the pose-free solution and cover every rotation, so the check is pose
+free too.
 """
 
 from __future__ import annotations
@@ -245,10 +246,16 @@ class FrameAppearance:
     def search(
         self, frame: ShapeFrame, image: sitk.Image, landmarks: ArrayLike, *, n_jobs: int = 1
     ) -> np.ndarray:
-        """The reference shape placed in ``image`` by a registration onto the mean, from
-        the frame of ``landmarks`` turned by every rotation of the cube: (N, 3) mm. The
-        registrations maximise the correlation over the frame's box; of the few refined to
-        convergence, the one that correlates best near the structure (:meth:`score`) wins.
+        """The reference shape placed in ``image`` by registrations onto the mean, from the
+        frame of ``landmarks`` turned by every rotation of the cube: (K, N, 3) mm, one
+        placement per registration refined to convergence, the one that correlates best near
+        the structure (:meth:`score`) first.
+
+        The registrations maximise the correlation over the frame's box: it leads them in
+        from afar, but a placement turned from the truth can win it by a hair (phantom:
+        0.613 against the truth's 0.607, and 0.65 near the structure against 0.92). So the
+        few best of a short screen are all refined and returned, to be told apart near the
+        structure, where the threshold judges.
 
         Every registration runs on one ITK thread (with more, the result moves in the
         seventh digit with their number: the same image gave another answer under
@@ -280,16 +287,12 @@ class FrameAppearance:
                 kept,
                 n_jobs,
             )
-        # The box's correlation leads the registrations in from afar; the converged ones
-        # are told apart near the structure, where the threshold judges: on the phantom, a
-        # placement turned 115 degrees from the truth beat it over the box by 0.006 (0.613
-        # against 0.607) and scored 0.65 near it, against the truth's 0.92.
-        placed = [
-            np.array([transform.TransformPoint(p) for p in frame.reference.tolist()])
+        placed = np.stack([
+            [transform.TransformPoint(p) for p in frame.reference.tolist()]
             for _, transform in final
-        ]
-        near = [self.score(frame, image, points) for points in placed]
-        return placed[int(np.argmax(near))]
+        ])  # fmt: skip
+        near = np.array([self.score(frame, image, points) for points in placed])
+        return placed[np.argsort(-near, kind="stable")]
 
     # -- persistence ------------------------------------------------------------------------
 

@@ -657,22 +657,27 @@ class ShapePriorSegmenter(BaseEstimator):
         return bool(self.appearance_check) and getattr(self, "appearance_", None) is not None
 
     def _check_appearance(self, image, found: Located) -> tuple[Located, dict]:
-        """``found``, or the refined registration onto the training mean when that
-        correlates better and is ``found`` turned about itself
-        (:meth:`FrameAppearance.prefers`); and what the check saw."""
+        """``found``, or the shape the active shape search finds from one of the
+        registrations onto the training mean: of those that correlate better than ``found``
+        and are ``found`` turned about itself (:meth:`FrameAppearance.prefers`), the one
+        that correlates best near the structure; and what the check saw (of that one, or
+        of the best near the structure when none is preferred)."""
         t0 = time.perf_counter()
         check = self.appearance_
         score, before = check.scores(self.frame_, image, found.landmarks)
         seen = {"score": score, "threshold": check.threshold_, "searched": False, "replaced": False}
         if score < check.threshold_:
-            start = check.search(self.frame_, image, found.landmarks, n_jobs=self.n_jobs)
             levels = int(self.refine_levels) or None  # 0: the search's every level
-            moved = self.shape_model_.search(image, start=start, levels=levels).landmarks
-            better, judged = check.prefers(
-                self.frame_, image, found.landmarks, moved, found_scores=(score, before)
-            )
-            replaced = better and not collapsed(moved)
-            seen |= {"searched": True, "box_score": before, **judged, "replaced": replaced}
+            judged = []
+            for start in check.search(self.frame_, image, found.landmarks, n_jobs=self.n_jobs):
+                moved = self.shape_model_.search(image, start=start, levels=levels).landmarks
+                better, said = check.prefers(
+                    self.frame_, image, found.landmarks, moved, found_scores=(score, before)
+                )
+                judged.append((better and not collapsed(moved), said["search_score"], moved, said))
+            # the preferred first, then the best near the structure (stable: the search's order)
+            replaced, _, moved, said = max(judged, key=lambda j: (j[0], j[1]))
+            seen |= {"searched": True, "box_score": before, **said, "replaced": replaced}
             if replaced:
                 found = replace(found, landmarks=moved)
         found.timings["appearance"] = time.perf_counter() - t0
