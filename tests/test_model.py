@@ -540,3 +540,31 @@ def test_one_shared_candidate_is_refined_a_collapse_is_refused():
     flat = points * [1.0, 1.0, 0.0]
     assert not _collapsed(points) and not _collapsed(one_shared)
     assert _collapsed(piled) and _collapsed(flat)
+
+
+def test_the_check_keeps_the_preferred_shape_of_all_the_searched_starts(fitted, cohort):
+    """Every registration the search refines starts a shape search, and the shape kept is
+    one the check prefers: here the first start (the best near the structure before the
+    shape search) is the found shape tilted by 10 degrees, never preferred (a local
+    correction), the second the right shape; the found shape is the right one half-turned."""
+    from dataclasses import replace
+
+    from scipy.spatial.transform import Rotation
+
+    image = cohort[6].load_image()
+    found = fitted._locate(image)
+    right = found.landmarks
+    centre = right.mean(axis=0)
+    axis = np.linalg.svd(right - centre)[2][0]  # the shape's long axis
+    half = Rotation.from_rotvec(np.pi * axis).as_matrix()
+    turned = (right - centre) @ half.T + centre
+    tilt = Rotation.from_rotvec(np.deg2rad(10.0) * np.linalg.svd(right - centre)[2][2])
+    tilted = (turned - centre) @ tilt.as_matrix().T + centre
+
+    model = copy.copy(fitted)
+    model.appearance_ = copy.copy(fitted.appearance_)
+    model.appearance_.threshold_ = np.inf  # always search
+    model.appearance_.search = lambda *args, **kwargs: np.stack([tilted, right])
+    kept, seen = model._check_appearance(image, replace(found, landmarks=turned))
+    assert seen["searched"] and seen["replaced"] and seen["turn_deg"] > 150.0
+    assert np.linalg.norm(kept.landmarks - right, axis=1).mean() < 1.5
