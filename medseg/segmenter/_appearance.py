@@ -19,11 +19,11 @@ the image onto the mean over the frame's whole box (SimpleITK: a similarity tran
 correlation metric; the surroundings are what tell a turned shape from the right one) from
 the found frame turned by each of the 24 rotations of the cube, and returns the reference
 shape carried through each of the few registrations refined to convergence: starts for the
-active shape search. The segmenter keeps, of the shapes found from them, the one that
-correlates best near the structure among those that correlate with the mean better, over the
-box and near the structure, than the found landmarks (:meth:`FrameAppearance.prefers`).
-The starts come from the pose-free solution and cover every rotation, so the check is pose
-free too.
+active shape search. Of the shapes found from them, the segmenter judges the one that
+correlates best near the structure, and keeps it when it correlates with the mean better,
+over the box and near the structure, than the found landmarks and is them turned about
+themselves (:meth:`FrameAppearance.prefers`). The starts come from the pose-free solution
+and cover every rotation, so the check is pose free too.
 """
 
 from __future__ import annotations

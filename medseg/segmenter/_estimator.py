@@ -672,15 +672,17 @@ class ShapePriorSegmenter(BaseEstimator):
         seen = {"score": score, "threshold": check.threshold_, "searched": False, "replaced": False}
         if score < check.threshold_:
             levels = int(self.refine_levels) or None  # 0: the search's every level
-            judged = []
-            for start in check.search(self.frame_, image, found.landmarks, n_jobs=self.n_jobs):
-                moved = self.shape_model_.search(image, start=start, levels=levels).landmarks
-                better, said = check.prefers(
-                    self.frame_, image, found.landmarks, moved, found_scores=(score, before)
-                )
-                judged.append((better and not collapsed(moved), said["search_score"], moved, said))
-            replaced, _, moved, said = max(judged, key=lambda j: j[1])  # stable: the first
-            seen |= {"searched": True, "box_score": before, **said, "replaced": replaced}
+            shapes = [
+                self.shape_model_.search(image, start=start, levels=levels).landmarks
+                for start in check.search(self.frame_, image, found.landmarks, n_jobs=self.n_jobs)
+            ]
+            near = [check.score(self.frame_, image, shape) for shape in shapes]
+            moved = shapes[int(np.argmax(near))]  # the first of equals: the search's order
+            better, judged = check.prefers(
+                self.frame_, image, found.landmarks, moved, found_scores=(score, before)
+            )
+            replaced = better and not collapsed(moved)
+            seen |= {"searched": True, "box_score": before, **judged, "replaced": replaced}
             if replaced:
                 found = replace(found, landmarks=moved)
         found.timings["appearance"] = time.perf_counter() - t0
