@@ -556,10 +556,10 @@ def test_the_check_judges_the_best_shape_of_all_the_searched_starts(fitted, coho
     found = fitted._locate(image)
     right = found.landmarks
     centre = right.mean(axis=0)
-    axis = np.linalg.svd(right - centre)[2][0]  # the shape's long axis
-    half = Rotation.from_rotvec(np.pi * axis).as_matrix()
+    axes = np.linalg.svd(right - centre)[2]  # the shape's principal axes, longest first
+    half = Rotation.from_rotvec(np.pi * axes[0]).as_matrix()
     turned = (right - centre) @ half.T + centre
-    tilt = Rotation.from_rotvec(np.deg2rad(10.0) * np.linalg.svd(right - centre)[2][2])
+    tilt = Rotation.from_rotvec(np.deg2rad(10.0) * axes[2])
     tilted = (turned - centre) @ tilt.as_matrix().T + centre
 
     model = copy.copy(fitted)
