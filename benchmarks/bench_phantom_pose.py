@@ -74,15 +74,17 @@ def _condition_seed(seed: int, case_id: str, condition: str, draw: int) -> int:
     return _perturbation_seed(seed, case_id, name)
 
 
-def _dice(model, image, labels, condition: str, seed: int) -> float:
+def _scored(model, image, labels, condition: str, seed: int) -> dict:
     """Dice of ``model`` on the case under ``condition`` (0 when it refuses the case, as in
-    ``medseg-evaluate``)."""
+    ``medseg-evaluate``), and whether the appearance check searched and replaced."""
     moved, moved_labels, *_ = perturb_condition(condition, image, labels, random_state=seed)
     try:
-        return score_segmentation(model.segment(moved).label, moved_labels).dice
+        seg = model.segment(moved)
     except MedsegError as exc:
         print(f"{condition} (seed {seed}): {exc}", file=sys.stderr)
-        return 0.0
+        return {"dice": 0.0}
+    seen = {k: v for k, v in (seg.appearance or {}).items() if k in ("searched", "replaced")}
+    return {"dice": score_segmentation(seg.label, moved_labels).dice, **seen}
 
 
 def run(args) -> None:
@@ -113,7 +115,7 @@ def run(args) -> None:
                             "case": case.case_id,
                             "condition": condition,
                             "draw": draw,
-                            "dice": _dice(model, image, labels, condition, seed),
+                            **_scored(model, image, labels, condition, seed),
                         }
                         fh.write(json.dumps(row) + "\n")
                         fh.flush()

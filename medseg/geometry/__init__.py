@@ -8,8 +8,8 @@
   :func:`cotangent_laplacian`: triangle meshes;
 * :func:`farthest_point_sampling` (Euclidean), :func:`geodesic_farthest_point_sampling`,
   :class:`GeodesicSolver`: sampling and geodesics;
-* :func:`principal_axes_candidates`, :func:`icp_similarity`, :func:`icp_affine`,
-  :func:`cpd_nonrigid`: point-set registration.
+* :func:`principal_frame`, :func:`principal_axes_candidates`, :func:`icp_similarity`,
+  :func:`icp_affine`, :func:`cpd_nonrigid`: point-set registration.
 
 Points are ``(N, 3)`` float arrays in one frame and unit (mm for anatomy); nothing here knows
 images, files or models.
@@ -35,6 +35,7 @@ from medseg.geometry._registration import (
     icp_affine,
     icp_similarity,
     principal_axes_candidates,
+    principal_frame,
 )
 from medseg.geometry._sampling import farthest_point_sampling, geodesic_farthest_point_sampling
 from medseg.geometry._similarity import Similarity, similarity_fit
@@ -54,6 +55,7 @@ __all__ = [
     "GeodesicSolver",
     "farthest_point_sampling",
     "geodesic_farthest_point_sampling",
+    "principal_frame",
     "principal_axes_candidates",
     "icp_similarity",
     "icp_affine",

@@ -3,6 +3,7 @@
 On plain arrays of physical points ``(N, 3)`` in mm (the similarity fit itself is
 :func:`medseg.geometry.similarity_fit`):
 
+* :func:`principal_frame`: a point cloud's centre, variances and principal axes;
 * :func:`principal_axes_candidates`: moment / principal-axes initialisations, one per sign
   choice of the axes (the 4 proper rotations, or all 8 when reflections are allowed);
 * :func:`icp_similarity`: iterative closest point with a similarity transform;
@@ -20,12 +21,14 @@ from dataclasses import dataclass
 from itertools import product
 
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy.sparse.linalg import eigsh
 from scipy.spatial import cKDTree
 
 from medseg.geometry._similarity import Similarity, similarity_fit
 
 __all__ = [
+    "principal_frame",
     "principal_axes_candidates",
     "icp_similarity",
     "icp_affine",
@@ -34,7 +37,10 @@ __all__ = [
 ]
 
 
-def _principal_frame(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def principal_frame(points: ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Centre (3,), variances (3,, largest first) and principal axes (3, 3, one per column,
+    in the same order; signs arbitrary) of a point cloud."""
+    points = np.asarray(points, dtype=float)
     centre = points.mean(axis=0)
     cov = np.cov((points - centre).T)
     evals, evecs = np.linalg.eigh(cov)
@@ -59,8 +65,8 @@ def principal_axes_candidates(
     -------
     list of Similarity
     """
-    c_s, ev_s, e_s = _principal_frame(src)
-    c_d, ev_d, e_d = _principal_frame(dst)
+    c_s, ev_s, e_s = principal_frame(src)
+    c_d, ev_d, e_d = principal_frame(dst)
     scale = float(np.sqrt(ev_d.sum() / ev_s.sum())) if ev_s.sum() > 0 else 1.0
     out = []
     for signs in product((1.0, -1.0), repeat=3):
