@@ -24,8 +24,9 @@ the expected Dice at each angle; the summary gives it with its standard error (c
 clusters) and its difference from 1 degree (resampling with hardly any rotation), paired
 by case.
 
-One JSON line per (case, angle, draw); a case the segmenter refuses (``MedsegError``) scores
-Dice 0, as in ``medseg-evaluate``. ``--shard`` / ``--n-shards`` split the cases among
+One JSON line per (case, angle, draw), with its Dice and, when the model has the appearance
+check, whether it searched and replaced; a case the segmenter refuses (``MedsegError``)
+scores Dice 0, as in ``medseg-evaluate``. ``--shard`` / ``--n-shards`` split the cases among
 processes (their files summarise together). Nothing is written into the repository.
 """
 
