@@ -11,7 +11,7 @@ from medseg.errors import ModelFileError, ParameterError
 from medseg.frame import ShapeFrame
 from medseg.io import padded_grid, resample_affine
 from medseg.segmenter import FrameAppearance
-from medseg.segmenter._appearance import cube_rotations
+from medseg.segmenter._appearance import icosahedral_rotations, search_turns
 
 SIZE = 44  # voxels of 1 mm
 AXES = np.array([11.0, 6.0, 5.0])  # the ellipsoid's semi-axes, mm
@@ -50,12 +50,31 @@ def trained():
     return frame, FrameAppearance().fit(frame, images, shapes)
 
 
-def test_the_cube_rotations_are_the_24_proper_rotations_identity_first():
-    group = cube_rotations()
-    assert group.shape == (24, 3, 3)
+def test_the_starts_are_60_proper_rotations_identity_first_none_farther_than_45_degrees():
+    group = icosahedral_rotations()
+    assert group.shape == (60, 3, 3)
     np.testing.assert_allclose(group[0], np.eye(3), atol=1e-12)
     np.testing.assert_allclose(np.linalg.det(group), 1.0)
-    assert len({tuple(np.round(r, 6).ravel()) for r in group}) == 24
+    assert len({tuple(np.round(r, 6).ravel()) for r in group}) == 60
+    starts = Rotation.from_matrix(group)
+    anywhere = Rotation.random(2000, random_state=0)
+    nearest = np.min([(anywhere * start.inv()).magnitude() for start in starts], axis=0)
+    assert np.degrees(nearest.max()) < 45.0
+
+
+def test_the_half_turns_about_the_shapes_own_axes_are_among_the_starts(trained):
+    """An elongated shape turned about one of its principal axes lies on its own surface:
+    the turned copy the check is for. The starts undo each such turn exactly."""
+    frame, _ = trained
+    turns = search_turns(frame)
+    assert turns.shape == (60, 3, 3)
+    np.testing.assert_allclose(turns[0], np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(np.linalg.det(turns), 1.0)
+    centred = frame.reference - frame.reference.mean(axis=0)
+    axes = np.linalg.svd(centred, full_matrices=False)[2]  # rows, largest spread first
+    for axis in axes:
+        half = Rotation.from_rotvec(np.pi * axis).as_matrix()
+        assert np.min(np.linalg.norm(turns - half, axis=(1, 2))) < 1e-9
 
 
 def test_a_half_turned_shape_scores_low_and_the_search_puts_it_right(trained):
@@ -142,7 +161,7 @@ def test_of_the_converged_registrations_the_one_that_fits_near_the_shape_wins(tr
     """The registrations maximise the correlation over the frame's box, which a placement
     turned from the truth can win by a hair (phantom: 0.613 against 0.607); the search then
     returns the converged registration that correlates best near the structure. Here the
-    registration is a fake: the start nearest the truth (2.5 mm off; the other 23 are 6 mm
+    registration is a fake: the start nearest the truth (0.1 mm off; the other 59 are 6 mm
     or more) is rated first in the screen and converges onto the truth, rated last; the
     others stay where they start (the half-turned copy among them, 0.95 near the shape
     against the truth's 0.98, and rated above it over the box)."""
