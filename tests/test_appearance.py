@@ -95,6 +95,66 @@ def test_a_half_turned_shape_scores_low_and_the_search_puts_it_right(trained):
     assert np.linalg.norm(found - truth, axis=1).mean() < 2.0
 
 
+def test_the_screens_coarse_copy_lies_where_the_image_lies():
+    """The screen registers a cropped, smoothed, coarse copy of the image: on an oblique,
+    anisotropic grid, a linear ramp (which a Gaussian leaves as it is) keeps its value at
+    every physical point of the copy away from the edges, and the crop holds the ball."""
+    import medseg.segmenter._appearance as appearance
+
+    size, spacing, origin = (40, 36, 30), np.array([0.8, 1.0, 1.5]), np.array([5.0, -12.0, 30.0])
+    direction = Rotation.from_rotvec([0.4, -0.3, 0.7]).as_matrix()
+    slope = np.array([0.5, -1.0, 2.0])  # the ramp's value per mm
+    index = np.stack(np.meshgrid(*[np.arange(n) for n in size], indexing="ij"), -1)
+    points = origin + (index * spacing) @ direction.T
+    image = sitk.GetImageFromArray((points @ slope).transpose(2, 1, 0).astype(np.float32))
+    image.SetSpacing(spacing.tolist())
+    image.SetDirection(direction.ravel().tolist())
+    image.SetOrigin(origin.tolist())
+
+    centre = image.TransformContinuousIndexToPhysicalPoint((20.0, 18.0, 15.0))
+    cropped = appearance._cropped(image, np.asarray(centre), 10.0)
+    assert cropped.GetSize() < image.GetSize()
+    for sign in (-1.0, 1.0):
+        for axis in direction.T:
+            inside = cropped.TransformPhysicalPointToContinuousIndex(
+                (np.asarray(centre) + sign * 10.0 * axis).tolist()
+            )
+            assert all(-0.5 <= i <= n - 0.5 for i, n in zip(inside, cropped.GetSize(), strict=True))
+    coarse, mask = appearance._coarse(cropped, None, 2.0)
+    assert mask is None and coarse.GetSpacing() == pytest.approx((2.0, 2.0, 2.0))
+    assert coarse.GetDirection() == pytest.approx(image.GetDirection())
+    values = sitk.GetArrayFromImage(coarse).transpose(2, 1, 0)
+    for i, j, k in np.ndindex(*values.shape):
+        if (
+            2 <= min(i, j, k)
+            and i < values.shape[0] - 2
+            and j < values.shape[1] - 2
+            and (k < values.shape[2] - 2)
+        ):
+            point = coarse.TransformIndexToPhysicalPoint((i, j, k))
+            assert values[i, j, k] == pytest.approx(float(np.dot(point, slope)), abs=0.05)
+
+
+def test_the_screens_coarse_copy_keeps_a_padding_out_of_the_content():
+    """Smoothed over the content alone, an image of 100 (and noise) padded with zeros stays
+    100 at every voxel the coarse mask keeps (smoothed plainly, the zeros would pull its edge
+    down), and the copy is float32, as the fixed mean is: a registration of two types fails, and the
+    screen would then keep every start where it is."""
+    import medseg.segmenter._appearance as appearance
+
+    values = np.zeros((30, 30, 30), dtype=np.float32)
+    values[6:24, 6:24, 6:24] = np.random.default_rng(0).normal(100.0, 1.0, (18, 18, 18))
+    image = sitk.GetImageFromArray(values)
+    image.SetSpacing((1.0, 1.0, 1.0))
+    mask = appearance._padding_excluded(image)
+    assert mask is not None
+    coarse, kept = appearance._coarse(sitk.Cast(image, sitk.sitkFloat64), mask, 2.0)
+    assert coarse.GetPixelID() == sitk.sitkFloat32 and kept is not None
+    inside = sitk.GetArrayFromImage(kept) > 0
+    assert inside.sum() >= 6**3
+    np.testing.assert_allclose(sitk.GetArrayFromImage(coarse)[inside], 100.0, atol=0.5)
+
+
 def test_a_turned_copy_is_replaced_a_small_correction_is_not(trained):
     """The searched landmarks replace the found ones when they correlate better and the
     found ones are the shape turned about itself; a found shape tilted a little from the
@@ -181,7 +241,7 @@ def test_of_the_converged_registrations_the_one_that_fits_near_the_shape_wins(tr
         placed = np.array([transform.TransformPoint(p) for p in frame.reference.tolist()])
         return bool(np.linalg.norm(placed - truth, axis=1).mean() < 4.0)
 
-    def fake_register(fixed, moving, mask, start, iterations):
+    def fake_register(fixed, moving, mask, start, iterations, **options):
         if iterations != appearance._FINAL_ITERATIONS:  # the screen
             return (1.0 if near_truth(start) else 0.9), sitk.Similarity3DTransform(start)
         if near_truth(start):
