@@ -447,8 +447,9 @@ def _coarse(image: sitk.Image, mask, step: float):
     grid.SetOrigin(first.tolist())
 
     def coarse(values: sitk.Image) -> sitk.Image:
-        smooth = sitk.SmoothingRecursiveGaussian(values, float(step))
-        return resample_like(smooth, grid, is_label=False)
+        if min(values.GetSize()) >= 4:  # ITK's recursive Gaussian needs 4 voxels a side
+            values = sitk.SmoothingRecursiveGaussian(values, float(step))
+        return resample_like(values, grid, is_label=False)
 
     image = sitk.Cast(image, sitk.sitkFloat32)  # the fixed mean's type: ITK wants one
     if mask is None:
