@@ -123,23 +123,18 @@ def test_the_screens_coarse_copy_lies_where_the_image_lies():
     coarse, mask = appearance._coarse(cropped, None, 2.0)
     assert mask is None and coarse.GetSpacing() == pytest.approx((2.0, 2.0, 2.0))
     assert coarse.GetDirection() == pytest.approx(image.GetDirection())
-    values = sitk.GetArrayFromImage(coarse).transpose(2, 1, 0)
-    for i, j, k in np.ndindex(*values.shape):
-        if (
-            2 <= min(i, j, k)
-            and i < values.shape[0] - 2
-            and j < values.shape[1] - 2
-            and (k < values.shape[2] - 2)
-        ):
-            point = coarse.TransformIndexToPhysicalPoint((i, j, k))
-            assert values[i, j, k] == pytest.approx(float(np.dot(point, slope)), abs=0.05)
+    values = sitk.GetArrayFromImage(coarse).transpose(2, 1, 0)  # (x, y, z)
+    for index in np.ndindex(*(n - 4 for n in values.shape)):  # 2 voxels from every edge
+        index = tuple(int(i) + 2 for i in index)
+        point = coarse.TransformIndexToPhysicalPoint(index)
+        assert values[index] == pytest.approx(float(np.dot(point, slope)), abs=0.05)
 
 
 def test_the_screens_coarse_copy_keeps_a_padding_out_of_the_content():
     """Smoothed over the content alone, an image of 100 (and noise) padded with zeros stays
     100 at every voxel the coarse mask keeps (smoothed plainly, the zeros would pull its edge
-    down), and the copy is float32, as the fixed mean is: a registration of two types fails, and the
-    screen would then keep every start where it is."""
+    down), and the copy is float32, as the fixed mean is: a registration of two types fails,
+    and the screen would then keep every start where it is."""
     import medseg.segmenter._appearance as appearance
 
     values = np.zeros((30, 30, 30), dtype=np.float32)
