@@ -247,3 +247,31 @@ def test_of_the_converged_registrations_the_one_that_fits_near_the_shape_wins(tr
     placed = check.search(frame, image, turned)
     assert placed.shape == (appearance._KEPT_STARTS, *truth.shape)
     assert np.linalg.norm(placed[0] - truth, axis=1).mean() < 0.01
+
+
+def test_the_found_frame_is_refined_even_when_the_screen_ranks_it_last(trained, monkeypatch):
+    """The screen's coarse correlation can rank the found frame below turned ones (phantom
+    turned by 30 degrees: 10th of 60, none of the six kept within 100 degrees of it), and a
+    turned shape would then only have to beat the found landmarks as they are. Here the fake
+    screen rates the found frame (right: the truth) last and every turned start alike; the
+    refined placements must still hold it, beside the six best."""
+    import medseg.segmenter._appearance as appearance
+
+    frame, check = trained
+    rotation = Rotation.from_rotvec([-0.7, 0.4, 1.1]).as_matrix()
+    image, truth = _render(rotation, np.random.default_rng(7))
+
+    def at_truth(transform) -> bool:
+        placed = np.array([transform.TransformPoint(p) for p in frame.reference.tolist()])
+        return bool(np.linalg.norm(placed - truth, axis=1).mean() < 4.0)
+
+    def fake_register(fixed, moving, mask, start, iterations, **options):
+        screen = iterations != appearance._FINAL_ITERATIONS
+        score = (0.0 if at_truth(start) else 1.0) if screen else 0.5
+        return score, sitk.Similarity3DTransform(start)
+
+    monkeypatch.setattr(appearance, "_register", fake_register)
+    placed = check.search(frame, image, truth)
+    assert placed.shape == (appearance._KEPT_STARTS + 1, *truth.shape)
+    off = np.linalg.norm(placed - truth, axis=2).mean(axis=1)
+    assert np.sum(off < 4.0) == 1
