@@ -21,12 +21,11 @@ the found frame turned by each of the 60 rotations of the icosahedron about the 
 shape's principal axes (:func:`search_turns`), first on a smoothed coarse copy of the image,
 and returns the reference shape carried through each of the few best registrations refined
 to convergence on the image itself, and through the found frame refined alike: starts for
-the active shape search. Of the shapes
-found from them, the segmenter judges the one that correlates best near the structure, and
-keeps it when it correlates with the mean better, over the box and near the structure, than
-the found landmarks and is them turned about themselves (:meth:`FrameAppearance.prefers`).
-The starts come from the pose-free solution and cover every rotation, so the check is pose
-free too.
+the active shape search. Of the shapes found from them, the segmenter judges the one that
+correlates best near the structure, and keeps it when it correlates with the mean better,
+over the box and near the structure, than the found landmarks and is them turned about
+themselves (:meth:`FrameAppearance.prefers`). The starts come from the pose-free solution
+and cover every rotation, so the check is pose free too.
 """
 
 from __future__ import annotations
