@@ -40,6 +40,13 @@ def _render(rotation: np.ndarray, rng) -> tuple[sitk.Image, np.ndarray]:
     return image, _sites() @ rotation.T + centre
 
 
+def _lands_on(frame: ShapeFrame, transform, points: np.ndarray) -> bool:
+    """Whether ``transform`` carries the frame's reference shape within 4 mm (mean) of
+    ``points``: the other starts of the search lie 6 mm or more off."""
+    placed = np.array([transform.TransformPoint(p) for p in frame.reference.tolist()])
+    return bool(np.linalg.norm(placed - points, axis=1).mean() < 4.0)
+
+
 @pytest.fixture(scope="module")
 def trained():
     rng = np.random.default_rng(0)
@@ -232,14 +239,11 @@ def test_of_the_converged_registrations_the_one_that_fits_near_the_shape_wins(tr
         frame.pose(truth), np.eye(3), frame.reference.mean(axis=0)
     )
 
-    def near_truth(transform) -> bool:
-        placed = np.array([transform.TransformPoint(p) for p in frame.reference.tolist()])
-        return bool(np.linalg.norm(placed - truth, axis=1).mean() < 4.0)
-
     def fake_register(fixed, moving, mask, start, iterations, **options):
+        at_truth = _lands_on(frame, start, truth)
         if iterations != appearance._FINAL_ITERATIONS:  # the screen
-            return (1.0 if near_truth(start) else 0.9), sitk.Similarity3DTransform(start)
-        if near_truth(start):
+            return (1.0 if at_truth else 0.9), sitk.Similarity3DTransform(start)
+        if at_truth:
             return 0.5, sitk.Similarity3DTransform(onto_truth)
         return 0.9, sitk.Similarity3DTransform(start)
 
@@ -261,13 +265,9 @@ def test_the_found_frame_is_refined_even_when_the_screen_ranks_it_last(trained, 
     rotation = Rotation.from_rotvec([-0.7, 0.4, 1.1]).as_matrix()
     image, truth = _render(rotation, np.random.default_rng(7))
 
-    def at_truth(transform) -> bool:
-        placed = np.array([transform.TransformPoint(p) for p in frame.reference.tolist()])
-        return bool(np.linalg.norm(placed - truth, axis=1).mean() < 4.0)
-
     def fake_register(fixed, moving, mask, start, iterations, **options):
         screen = iterations != appearance._FINAL_ITERATIONS
-        score = (0.0 if at_truth(start) else 1.0) if screen else 0.5
+        score = (0.0 if _lands_on(frame, start, truth) else 1.0) if screen else 0.5
         return score, sitk.Similarity3DTransform(start)
 
     monkeypatch.setattr(appearance, "_register", fake_register)
