@@ -399,6 +399,61 @@ def test_candidates_structure_and_min_distance(fitted, blobs):
     assert np.isfinite(u).all() and (u >= 0).all()
 
 
+def test_the_screen_scores_exactly_the_rows_the_first_trees_rate_best(fitted, blobs):
+    """A screened forest gives the rows its first trees rate best the probabilities of all
+    its trees, to the bit, and the others the mean of those first trees, capped so that
+    they rank after them."""
+    from medseg.detection._prediction import forest_features, forest_proba, screened_proba
+
+    image = blobs[7][0]
+    rows = forest_features(fitted, image, None).reshape(-1, fitted.n_features_)[::3]
+    rows = rows.astype(np.float32)
+    forest = fitted.forests_[0]
+    pos = list(forest.classes_).index(1)
+    got = screened_proba(forest, rows, 3, 50)
+    every = forest_proba(forest, rows)[:, pos]
+    first = np.mean([tree.predict_proba(rows)[:, pos] for tree in forest.estimators_[:3]], 0)
+    exact = got == every
+    assert exact.sum() >= 50  # the 50 screened, and others where the two agree
+    chosen = np.argsort(-first, kind="stable")[:50]
+    assert exact[chosen].all()
+    cap = got[chosen].min()
+    left_out = np.delete(got, chosen)
+    assert left_out.max() < cap  # ranked after every row screened in
+    np.testing.assert_allclose(left_out, np.minimum(np.delete(first, chosen), cap), atol=1e-12)
+    assert (np.delete(first, chosen) > cap).any()  # the cap is needed on this image
+    assert not np.array_equal(got, every)  # the first trees alone do not rate every row alike
+
+
+def test_a_screen_as_wide_as_the_image_changes_no_candidate(fitted, blobs):
+    image = blobs[6][0]
+    every = fitted.candidates(image, n_candidates=5, screen=None)
+    wide = fitted.candidates(image, n_candidates=5, screen=(3, 10**6))
+    assert np.array_equal(every.positions, wide.positions)
+    assert np.array_equal(every.probabilities, wide.probabilities)
+    with pytest.raises(ParameterError, match="screen"):
+        fitted.candidates(image, n_candidates=5, screen=(3, 4))
+    with pytest.raises(ParameterError, match="screen"):
+        fitted.candidates(image, n_candidates=5, screen=(0, 400))
+
+
+def test_a_narrow_screen_keeps_exact_scores_best_first_and_apart(fitted, blobs):
+    """Screened to 40 voxels a landmark, the candidates still come best first and apart,
+    and the best carries its exact probability; the screen changed some of them."""
+    image = blobs[6][0]
+    kwargs = dict(n_candidates=6, min_distance_mm=4.0, stride=1, refine=False)
+    every = fitted.candidates(image, screen=None, **kwargs)
+    screened = fitted.candidates(image, screen=(3, 40), **kwargs)
+    maps = fitted.predict_proba_map(image, stride=1)
+    for i in range(7):
+        z, y, x = np.rint(screened.voxels[i, 0]).astype(int)
+        assert screened.probabilities[i, 0] == pytest.approx(maps[i, z, y, x], abs=1e-6)
+        d = np.linalg.norm(screened.positions[i][:, None] - screened.positions[i][None], axis=-1)
+        assert d[np.triu_indices(6, 1)].min() > 4.0
+    assert np.all(np.diff(screened.probabilities, axis=1) <= 0)
+    assert not np.array_equal(screened.positions, every.positions)
+
+
 def test_probability_map_agrees_with_candidates(fitted, blobs):
     image, _ = blobs[6]
     maps = fitted.predict_proba_map(image, stride=1)

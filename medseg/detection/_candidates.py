@@ -266,6 +266,7 @@ def detect_candidates(
     refine: bool,
     floor: float,
     precomputed: np.ndarray | None,
+    screen: tuple[int, int] | None = None,
 ) -> CandidateSet:
     """:meth:`LandmarkDetector.candidates` of a fitted detector (the arguments are its own)."""
     n_candidates = int(n_candidates)
@@ -273,6 +274,7 @@ def detect_candidates(
         raise ParameterError(f"`n_candidates` must be >= 1, got {n_candidates}")
     if not 0 < floor < 1:
         raise ParameterError(f"`floor` must be in (0, 1), got {floor}")
+    screen = _check_screen(screen, n_candidates)
     timings = {}
     t0 = time.perf_counter()
     feats = forest_features(detector, image, precomputed)
@@ -299,7 +301,9 @@ def detect_candidates(
         scored = np.ones(len(grid_rows), dtype=bool)
         footprint = None
     proba = np.full((len(grid_rows), detector.n_landmarks_), -np.inf, dtype=np.float64)
-    proba[scored] = predict_cascade(detector, flat[grid_rows[scored]], rejected=-np.inf)
+    proba[scored] = predict_cascade(
+        detector, flat[grid_rows[scored]], rejected=-np.inf, screen=screen
+    )
     timings["predict_s"] = time.perf_counter() - t0
     points_mm = voxel_to_physical(image, grid_zyx)
 
@@ -338,9 +342,27 @@ def detect_candidates(
             "min_distance_mm": float(min_distance_mm),
             "refine": bool(refine),
             "mode": detector.mode,
+            "screen": screen,
             "timings": timings,
         },
     )
+
+
+def _check_screen(screen, n_candidates: int) -> tuple[int, int] | None:
+    """``screen`` as ``(trees, rows)`` of ints (or None); ParameterError if it cannot hold
+    ``n_candidates`` candidates."""
+    if screen is None:
+        return None
+    try:
+        trees, rows = (int(v) for v in screen)
+    except (TypeError, ValueError):
+        raise ParameterError(f"`screen` must be (trees, rows) or None, got {screen!r}") from None
+    if trees < 1 or rows < n_candidates:
+        raise ParameterError(
+            f"`screen` = (trees, rows) needs trees >= 1 and rows >= n_candidates "
+            f"({n_candidates}), got {screen!r}"
+        )
+    return trees, rows
 
 
 def _refine(detector, flat, shape, mask, vox, prob, half):

@@ -325,6 +325,7 @@ class LandmarkDetector(BaseEstimator):
         refine: bool = True,
         floor: float = 1e-6,
         precomputed: np.ndarray | None = None,
+        screen: tuple[int, int] | None = (8, 1000),
     ) -> CandidateSet:
         """The ``n_candidates`` best, spatially distinct positions of every landmark.
 
@@ -348,6 +349,21 @@ class LandmarkDetector(BaseEstimator):
             Probability floor, so ``-log p`` is finite.
         precomputed : (Z, Y, X, F) float32 array, optional
             ``compute_features(image, self.features)``.
+        screen : (trees, rows) or None, default (8, 1000)
+            With per-landmark forests, each forest's first ``trees`` trees rate every
+            scored voxel, and all its trees then score only the ``rows`` voxels they rate
+            best; the others rank after those, by the first trees' rating. The candidates
+            screened in have their exact scores (and with ``refine`` every candidate
+            does); what can change is a peak that only the later trees would have put
+            first. None scores every voxel with every tree. Measured on 2026-12-08 against
+            None: a 138-case hippocampus model on 12 held-out cases, one thread, in one
+            process, scored the stride grid in 0.30 s instead of 0.45 (detection 0.61
+            instead of 0.75, a case 2.42 instead of 2.48; medians); over 40 held-out cases
+            Dice 0.8827 instead of 0.8835 (paired s.e. 0.0007), 30 cases with the same
+            landmarks to the bit; the phantom's pose bench (180 draws) rose at every angle
+            (acquired, 1 / 15 / 30 / 45 degrees: 0.955 / 0.951 / 0.944 / 0.937 / 0.940
+            against 0.947 / 0.944 / 0.943 / 0.934 / 0.932; five draws up by more than 0.1,
+            none down). ``(5, 1000)`` lost two of those draws (to Dice 0.45 and 0.58).
 
         Returns
         -------
@@ -365,6 +381,7 @@ class LandmarkDetector(BaseEstimator):
             refine=refine,
             floor=floor,
             precomputed=precomputed,
+            screen=screen,
         )
 
     # ------------------------------------------------------------------ persistence

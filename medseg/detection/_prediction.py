@@ -32,6 +32,7 @@ __all__ = [
     "forest_feature_names",
     "forest_features",
     "forest_proba",
+    "forest_votes",
     "predict_cascade",
     "predict_rows",
     "probability_map",
@@ -213,32 +214,46 @@ def forest_proba(forest, X: np.ndarray) -> np.ndarray:
     each by its own forest) its per-call set-up (a joblib pool over the trees, its warning
     filters) costs more than the trees.
     """
+    return forest_votes(forest, X) / len(forest.estimators_)
+
+
+def forest_votes(forest, X: np.ndarray, trees: slice = slice(None), start=None) -> np.ndarray:
+    """The sum of the class fractions the trees ``trees`` of ``forest`` give the rows ``X``,
+    added in the forest's order onto ``start`` ((M, C) float64, zeros by default), in row
+    blocks on ``forest.n_jobs`` threads (:func:`forest_proba`)."""
     X = np.ascontiguousarray(X, dtype=np.float32)  # the trees' dtype (no copy if it is)
+    if start is None:
+        start = np.zeros((X.shape[0], forest.n_classes_), dtype=np.float64)
     n_blocks = min(effective_n_jobs(forest.n_jobs), X.shape[0] // _ROWS_PER_THREAD)
     if n_blocks <= 1:
-        return _tree_sum(forest, X)
+        return _tree_sum(forest, X, trees, start)
     edges = np.linspace(0, X.shape[0], n_blocks + 1).astype(int).tolist()
-    blocks = [X[a:b] for a, b in zip(edges[:-1], edges[1:], strict=True)]
-    return np.concatenate(thread_map(lambda rows: _tree_sum(forest, rows), blocks, len(blocks)))
+
+    def block(bounds):
+        a, b = bounds
+        return _tree_sum(forest, X[a:b], trees, start[a:b])
+
+    blocks = list(zip(edges[:-1], edges[1:], strict=True))
+    return np.concatenate(thread_map(block, blocks, len(blocks)))
 
 
-def _tree_sum(forest, X: np.ndarray) -> np.ndarray:
-    """The forest's probabilities of the float32 rows ``X``, its trees summed in order.
+def _tree_sum(forest, X: np.ndarray, trees: slice, start: np.ndarray) -> np.ndarray:
+    """``start`` plus the class fractions the trees ``trees`` of ``forest`` give the
+    float32 rows ``X``, added in order.
 
     Each tree's probabilities (of a single-output forest, as every forest here is) are its
     leaves' stored class fractions, looked up for the leaf every row reaches: what
-    ``predict_proba`` returns, to the bit, without its per-call checks and its copy of
-    every node's values (about a tenth of the trees' time on a segmentation's rows).
+    ``predict_proba`` sums, to the bit, without its per-call checks and its copy of every
+    node's values (about a tenth of the trees' time on a segmentation's rows).
     """
     if X.shape[1] != forest.n_features_in_:
         raise ValueError(
             f"X has {X.shape[1]} features, but the forest expects {forest.n_features_in_}"
         )
-    total = np.zeros((X.shape[0], forest.n_classes_), dtype=np.float64)
-    for tree in forest.estimators_:
+    total = np.array(start, dtype=np.float64)
+    for tree in forest.estimators_[trees]:
         nodes = tree.tree_
         total += np.take(nodes.value[:, 0, : tree.n_classes_], nodes.apply(X), axis=0)
-    total /= len(forest.estimators_)
     return total
 
 
@@ -258,11 +273,49 @@ def region_keep(detector, X: np.ndarray) -> np.ndarray:
     return keep
 
 
-def predict_cascade(detector, X: np.ndarray, *, rejected: float = 0.0) -> np.ndarray:
-    """Landmark probabilities of the rows of ``X``; ``rejected`` where the cascade says no."""
+def predict_cascade(
+    detector, X: np.ndarray, *, rejected: float = 0.0, screen: tuple[int, int] | None = None
+) -> np.ndarray:
+    """Landmark probabilities of the rows of ``X``; ``rejected`` where the cascade says no.
+
+    ``screen = (trees, rows)``: each landmark forest of a per-landmark detector gives all its
+    trees only to the ``rows`` rows its first ``trees`` trees rate best, and the other rows
+    rank after those (:func:`screened_proba`). None scores every row with every tree.
+    """
     keep = region_keep(detector, X)
     out = np.full((X.shape[0], detector.n_landmarks_), rejected, dtype=np.float32)
-    out[keep] = predict_rows(detector, X[keep])
+    if screen is None or detector.mode != "per_landmark":
+        out[keep] = predict_rows(detector, X[keep])
+        return out
+    X = np.ascontiguousarray(X[keep], dtype=np.float32)
+    for i, forest in enumerate(detector.forests_):
+        forest.n_jobs = detector.n_jobs
+        out[keep, i] = screened_proba(forest, X, *screen)
+    return out
+
+
+def screened_proba(forest, X: np.ndarray, trees: int, rows: int) -> np.ndarray:
+    """Class-1 probabilities of the rows ``X``: :func:`forest_proba`'s, to the bit, for the
+    ``rows`` rows the first ``trees`` trees of ``forest`` rate best (ties to the earlier
+    row); for the others, the first trees' mean capped just below the lowest of those, so
+    that they rank after every row screened in.
+
+    A candidate search keeps a few peaks per landmark: where a forest's trees agree, its
+    first few already find the rows that hold them, and the rest of the trees score only
+    those. The rows left out still order among themselves, for a search that needs more
+    distinct peaks than the screened rows hold.
+    """
+    hit = np.flatnonzero(forest.classes_ == 1)
+    if not hit.size:
+        return np.zeros(X.shape[0])
+    n_first = min(int(trees), len(forest.estimators_))
+    first = forest_votes(forest, X, slice(0, n_first))
+    chosen = np.argsort(-first[:, hit[0]], kind="stable")[: int(rows)]
+    total = forest_votes(forest, X[chosen], slice(n_first, None), start=first[chosen])
+    exact = total[:, hit[0]] / len(forest.estimators_)
+    cap = np.nextafter(exact.min(initial=np.inf), -np.inf)
+    out = np.minimum(first[:, hit[0]] / n_first, cap)
+    out[chosen] = exact
     return out
 
 
